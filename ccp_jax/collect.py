@@ -1,0 +1,145 @@
+"""Acting in the environment: data collection with auto-reset, and evaluation.
+
+Each env acts with the policy of its current stage, π_{U(s)} (or the single
+agent for end-to-end SAC); every agent's actor runs on the whole env batch and
+the stage picks the row, which is cheaper than gathering parameters per env.
+"""
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from brax.envs.base import Env, State
+
+from ccp_jax.buffer import ReplayBuffer, Transition, add
+from ccp_jax.config import Config
+from ccp_jax.networks import Actor, deterministic_action, sample_action
+
+
+class EpisodeStats(NamedTuple):
+    """Training episodes that ended during a collection: counts summed over the epoch."""
+
+    episodes: jax.Array
+    successes: jax.Array
+
+
+def agent_of(config: Config, stage: jax.Array) -> jax.Array:
+    """The acting agent for a stage: the stage itself, or 0 for end-to-end SAC."""
+    return jnp.zeros_like(stage) if config.num_agents == 1 else stage
+
+
+def reward_channels(config: Config, rewards: jax.Array) -> jax.Array:
+    """Per-agent rewards [..., R] from the env's subtask rewards [..., N]."""
+    return rewards.sum(-1, keepdims=True) if config.num_agents == 1 else rewards
+
+
+def completed_channels(config: Config, next_stage: jax.Array, success: jax.Array) -> jax.Array:
+    """float32[..., R]: channels whose reward is 1 forever from s' on (absorbing).
+
+    Success completes every channel (`absorbing_success`); entering stage U(s')
+    completes the subtasks before it (`absorbing_stages`; the summed SAC channel
+    only completes with the whole task).
+    """
+    done = jnp.zeros(success.shape + (config.num_agents,), bool)
+    if config.absorbing_success:
+        done |= success[..., None] > 0
+    if config.absorbing_stages and config.num_agents > 1:
+        done |= next_stage[..., None] > jnp.arange(config.num_agents)
+    return done.astype(jnp.float32)
+
+
+def policy_mean_and_log_std(actor: Actor, params, obs: jax.Array, agent: jax.Array):
+    """The acting agent's Gaussian head for each env: obs [E, o], agent int32[E] -> [E, a] ×2."""
+    mean, log_std = jax.vmap(actor.apply, in_axes=(0, None))(params, obs)  # [N, E, a]
+    pick = lambda x: jnp.take_along_axis(x, agent[None, :, None], axis=0)[0]
+    return pick(mean), pick(log_std)
+
+
+def _where_done(done: jax.Array, on_done, otherwise):
+    """Per-env select between two batched pytrees (leaves [E, ...])."""
+    def sel(a, b):
+        return jnp.where(done.reshape(done.shape + (1,) * (a.ndim - 1)) > 0, a, b)
+    return jax.tree.map(sel, on_done, otherwise)
+
+
+def make_collect(config: Config, env: Env, actor: Actor) -> Callable:
+    """`collect(actor_params, env_state, buffer, key, env_steps) -> (env_state, buffer, stats)`.
+
+    Runs `config.collect_iters` vectorised steps over `config.num_envs` envs;
+    before `config.start_steps` total env steps, actions are uniform random.
+    """
+    num_envs = config.num_envs
+    v_step, v_reset = jax.vmap(env.step), jax.vmap(env.reset)
+
+    def one_step(actor_params, carry, _):
+        env_state, buffer, key, env_steps, stats = carry
+        key, k_act, k_rand, k_reset = jax.random.split(key, 4)
+        agent = agent_of(config, env_state.info["stage"])
+        mean, log_std = policy_mean_and_log_std(actor, actor_params, env_state.obs, agent)
+        policy_action, _ = sample_action(mean, log_std, k_act)
+        random_action = jax.random.uniform(k_rand, policy_action.shape, minval=-1.0, maxval=1.0)
+        action = jnp.where(env_steps < config.start_steps, random_action, policy_action)
+
+        nxt = v_step(env_state, action)
+        success = nxt.metrics["success"]
+        tr = Transition(obs=env_state.obs, action=action,
+                        rewards=reward_channels(config, nxt.info["rewards"]), next_obs=nxt.obs,
+                        terminal=nxt.done * (1.0 - nxt.info["truncation"]),
+                        completed=completed_channels(config, nxt.info["stage"], success))
+        buffer = add(buffer, tr, agent)
+        stats = EpisodeStats(stats.episodes + nxt.done.sum(), stats.successes + (nxt.done * success).sum())
+        env_state = _where_done(nxt.done, v_reset(jax.random.split(k_reset, num_envs)), nxt)
+        return (env_state, buffer, key, env_steps + num_envs, stats), None
+
+    def collect(actor_params, env_state: State, buffer: ReplayBuffer, key: jax.Array, env_steps: jax.Array):
+        stats = EpisodeStats(jnp.zeros((), jnp.float32), jnp.zeros((), jnp.float32))
+        carry = (env_state, buffer, key, env_steps, stats)
+        (env_state, buffer, _, _, stats), _ = jax.lax.scan(
+            lambda c, x: one_step(actor_params, c, x), carry, None, length=config.collect_iters)
+        return env_state, buffer, stats
+
+    return collect
+
+
+class EvalMetrics(NamedTuple):
+    success_rate: jax.Array  # float32[]
+    eval_return: jax.Array  # float32[]: mean undiscounted Σ_n r_n per episode
+    stage_reached_mean: jax.Array  # float32[]: mean 0-based stage at the episode's end
+    stage_fraction: jax.Array  # float32[N]: fraction of episodes that reached each stage
+    episode_length: jax.Array  # float32[]
+
+
+def make_evaluate(config: Config, env: Env, actor: Actor) -> Callable:
+    """`evaluate(actor_params, key) -> EvalMetrics` over `config.eval_episodes` deterministic episodes.
+
+    Episodes run in parallel until all are done (or the time limit); a finished
+    episode is frozen rather than reset.
+    """
+    episodes, num_stages = config.eval_episodes, config.num_stages
+    v_step, v_reset = jax.vmap(env.step), jax.vmap(env.reset)
+
+    def evaluate(actor_params, key: jax.Array) -> EvalMetrics:
+        state = v_reset(jax.random.split(key, episodes))
+        zeros = jnp.zeros((episodes,), jnp.float32)
+
+        def cond(carry):
+            state, _, _, t = carry
+            return jnp.any(state.done == 0) & (t < config.max_episode_steps)
+
+        def body(carry):
+            state, ret, length, t = carry
+            agent = agent_of(config, state.info["stage"])
+            mean, _ = policy_mean_and_log_std(actor, actor_params, state.obs, agent)
+            nxt = v_step(state, deterministic_action(mean))
+            live = 1.0 - state.done
+            return (_where_done(state.done, state, nxt), ret + live * nxt.reward, length + live, t + 1)
+
+        state, ret, length, _ = jax.lax.while_loop(cond, body, (state, zeros, zeros, jnp.int32(0)))
+        stage = state.info["stage"]
+        reached = (stage[:, None] >= jnp.arange(num_stages)[None, :]).astype(jnp.float32)
+        return EvalMetrics(success_rate=state.metrics["success"].mean(), eval_return=ret.mean(),
+                           stage_reached_mean=stage.astype(jnp.float32).mean(),
+                           stage_fraction=reached.mean(0), episode_length=length.mean())
+
+    return evaluate

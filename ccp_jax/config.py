@@ -1,0 +1,196 @@
+"""One frozen, validated configuration for a whole training grid.
+
+`Config` holds every hyperparameter of SPEC §3 plus the grid (seeds × ratios).
+It is checked when it is built, so bad input fails with a message naming the
+field before anything is traced or compiled.
+"""
+from __future__ import annotations
+
+import dataclasses
+import itertools
+from typing import Literal, Sequence
+
+import numpy as np
+
+ALGOS = ("csac", "naive", "sac")
+Algo = Literal["csac", "naive", "sac"]
+PresetName = Literal["paper", "small", "tiny"]
+
+
+class ConfigError(ValueError):
+    """A configuration value is invalid; the message starts with the field name."""
+
+    def __init__(self, field: str, message: str):
+        super().__init__(f"{field}: {message}")
+        self.field = field
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Every resolved field of a run grid. Defaults are the paper's (SPEC §3)."""
+
+    # Task.
+    env: str = "maze"
+    rooms: int = 2
+    algo: Algo = "csac"
+    # Grid: every ratio vector is trained with every seed, in one vmapped program.
+    etas: tuple[tuple[float, ...], ...] = ((0.1,),)
+    seeds: tuple[int, ...] = (0,)
+    # Budget.
+    total_steps: int = 3_000_000
+    steps_per_epoch: int = 5000
+    train_loops_per_epoch: int = 1000
+    num_envs: int = 1
+    start_steps: int = 1000
+    max_episode_steps: int = 1000
+    eval_episodes: int = 10
+    # SAC.
+    hidden: tuple[int, ...] = (256, 256)
+    batch_size: int = 256
+    buffer_size: int = 1_000_000
+    gamma: float = 0.95
+    tau: float = 0.005
+    actor_lr: float = 3e-4
+    critic_lr: float = 3e-4
+    alpha_lr: float = 3e-4
+    # CCP.
+    absorbing_success: bool = True
+    # Past its stage a subtask's reward is 1 forever, so its critic bootstraps the exact
+    # value 1/(1 − γ) there instead of extrapolating into states it never trains on.
+    absorbing_stages: bool = True
+    normalise_last: bool = False
+    norm_eps: float = 1e-6
+
+    def __post_init__(self) -> None:
+        self._validate()
+
+    # ------------------------------------------------------------------ derived
+    @property
+    def num_stages(self) -> int:
+        """Stages N of the task: the maze's rooms, or the env's own fixed count."""
+        from ccp_jax.envs import FIXED_STAGES
+
+        return FIXED_STAGES.get(self.env, self.rooms)
+
+    @property
+    def num_agents(self) -> int:
+        """Agents trained: one per stage, or a single end-to-end agent for SAC."""
+        return 1 if self.algo == "sac" else self.num_stages
+
+    @property
+    def num_epochs(self) -> int:
+        return self.total_steps // self.steps_per_epoch
+
+    @property
+    def collect_iters(self) -> int:
+        """Vectorised env steps per epoch (each steps `num_envs` envs)."""
+        return self.steps_per_epoch // self.num_envs
+
+    @property
+    def grid(self) -> list[tuple[tuple[float, ...], int]]:
+        """Grid members in order: (per-agent eta vector, seed), ratios outermost."""
+        return [(self.eta_vector(e), s) for e, s in itertools.product(self.etas, self.seeds)]
+
+    @property
+    def grid_size(self) -> int:
+        return len(self.etas) * len(self.seeds)
+
+    def eta_vector(self, eta: Sequence[float]) -> tuple[float, ...]:
+        """Per-agent ratios of length `num_agents`.
+
+        A single value is shared by the cooperative agents; N−1 values give one
+        per cooperative agent. The last agent gets η = 1 (it has no next critic).
+        """
+        eta = tuple(float(x) for x in eta)
+        n = self.num_agents
+        if len(eta) == 1:
+            eta = eta * max(n - 1, 1)
+        if len(eta) == n - 1:
+            eta = eta + (1.0,)
+        return eta[:n]
+
+    def grid_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """(eta float32[G, num_agents], seed int32[G]) for the vmapped grid axis."""
+        members = self.grid
+        eta = np.asarray([m[0] for m in members], np.float32).reshape(len(members), self.num_agents)
+        seed = np.asarray([m[1] for m in members], np.int32)
+        return eta, seed
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d.update(num_stages=self.num_stages, num_agents=self.num_agents, num_epochs=self.num_epochs, grid_size=self.grid_size)
+        return d
+
+    def replace(self, **changes) -> "Config":
+        return dataclasses.replace(self, **changes)
+
+    # --------------------------------------------------------------- validation
+    def _validate(self) -> None:
+        from ccp_jax.envs import ENV_NAMES  # local: config must not import jax eagerly
+
+        if self.env not in ENV_NAMES and ":" not in self.env:
+            raise ConfigError("env", f"unknown env {self.env!r}; choose one of {ENV_NAMES} or 'module.path:factory'")
+        if self.algo not in ALGOS:
+            raise ConfigError("algo", f"unknown algo {self.algo!r}; choose one of {ALGOS}")
+        if not isinstance(self.rooms, int) or self.rooms < 2:
+            raise ConfigError("rooms", f"must be an integer >= 2, got {self.rooms!r}")
+        for name in ("total_steps", "steps_per_epoch", "train_loops_per_epoch", "num_envs",
+                     "max_episode_steps", "eval_episodes", "batch_size", "buffer_size"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or value <= 0:
+                raise ConfigError(name, f"must be a positive integer, got {value!r}")
+        if self.start_steps < 0:
+            raise ConfigError("start_steps", f"must be >= 0, got {self.start_steps}")
+        if not self.hidden or any(h <= 0 for h in self.hidden):
+            raise ConfigError("hidden", f"layer sizes must be positive, got {self.hidden}")
+        if self.steps_per_epoch % self.num_envs:
+            raise ConfigError("num_envs", f"must divide steps_per_epoch ({self.steps_per_epoch}), got {self.num_envs}")
+        if self.total_steps < self.steps_per_epoch:
+            raise ConfigError("total_steps", f"must be at least one epoch ({self.steps_per_epoch} steps), got {self.total_steps}")
+        if self.batch_size > self.buffer_size:
+            raise ConfigError("batch_size", f"({self.batch_size}) is larger than buffer_size ({self.buffer_size})")
+        if not 0.0 <= self.gamma < 1.0:
+            raise ConfigError("gamma", f"must be in [0, 1), got {self.gamma}")
+        if not 0.0 < self.tau <= 1.0:
+            raise ConfigError("tau", f"must be in (0, 1], got {self.tau}")
+        for name in ("actor_lr", "critic_lr", "alpha_lr", "norm_eps"):
+            if getattr(self, name) <= 0:
+                raise ConfigError(name, f"must be positive, got {getattr(self, name)}")
+        if not self.seeds:
+            raise ConfigError("seeds", "at least one seed is needed")
+        if len(set(self.seeds)) != len(self.seeds):
+            raise ConfigError("seeds", f"seeds must be distinct, got {self.seeds}")
+        if not self.etas:
+            raise ConfigError("eta", "at least one ratio is needed")
+        n = self.num_agents
+        for eta in self.etas:
+            if len(eta) not in (1, n - 1, n) or (len(eta) == n and n > 1 and not self.normalise_last):
+                allowed = "1 value" if n <= 2 else f"1 value or {n - 1} values (one per cooperative agent)"
+                raise ConfigError("eta_per_agent", f"ratio vector {tuple(eta)} has {len(eta)} values; "
+                                  f"{n} agents need {allowed}")
+            for x in eta:
+                if not (0.0 <= float(x) <= 1.0):
+                    raise ConfigError("eta", f"ratios must lie in [0, 1], got {x}")
+
+
+PRESETS: dict[str, dict] = {
+    # The paper's hyperparameters (SPEC §3).
+    "paper": dict(),
+    # SPEC §7's learning yardstick: paper settings with [64, 64] nets and a 2e5 buffer.
+    "small": dict(hidden=(64, 64), buffer_size=200_000, total_steps=250_000),
+    # Seconds-scale runs for tests.
+    "tiny": dict(hidden=(16, 16), batch_size=32, buffer_size=4096, steps_per_epoch=200,
+                 train_loops_per_epoch=20, total_steps=400, start_steps=100,
+                 max_episode_steps=100, eval_episodes=2, num_envs=2),
+}
+
+
+def make_config(preset: PresetName = "paper", **overrides) -> Config:
+    """A `Config` from a named preset, with explicit overrides on top."""
+    if preset not in PRESETS:
+        raise ConfigError("preset", f"unknown preset {preset!r}; choose one of {tuple(PRESETS)}")
+    fields = {f.name for f in dataclasses.fields(Config)}
+    unknown = set(overrides) - fields
+    if unknown:
+        raise ConfigError(sorted(unknown)[0], "not a configuration field")
+    return Config(**{**PRESETS[preset], **overrides})

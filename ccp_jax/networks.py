@@ -1,0 +1,69 @@
+"""Actor and critic networks (flax.linen), as in RLkit's SAC.
+
+Shapes below are for one agent; the trainer stacks agents on a leading axis
+by vmapping `init` and `apply`.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0  # RLkit's clamp
+
+
+class MLP(nn.Module):
+    """ReLU MLP with a linear output layer."""
+
+    hidden: Sequence[int]
+    out: int
+
+    @nn.compact
+    def __call__(self, x: jax.Array) -> jax.Array:
+        for h in self.hidden:
+            x = nn.relu(nn.Dense(h)(x))
+        return nn.Dense(self.out)(x)
+
+
+class Actor(nn.Module):
+    """Tanh-Gaussian policy head: obs [..., obs_dim] -> (mean, log_std) [..., act_dim]."""
+
+    hidden: Sequence[int]
+    action_size: int
+
+    @nn.compact
+    def __call__(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
+        out = MLP(self.hidden, 2 * self.action_size)(obs)
+        mean, log_std = jnp.split(out, 2, axis=-1)
+        return mean, jnp.clip(log_std, LOG_STD_MIN, LOG_STD_MAX)
+
+
+class TwinCritic(nn.Module):
+    """Two independent Q-networks: (obs [..., o], act [..., a]) -> q [2, ...]."""
+
+    hidden: Sequence[int]
+
+    @nn.compact
+    def __call__(self, obs: jax.Array, act: jax.Array) -> jax.Array:
+        twin = nn.vmap(MLP, variable_axes={"params": 0}, split_rngs={"params": True},
+                       in_axes=None, out_axes=0, axis_size=2)
+        return twin(self.hidden, 1)(jnp.concatenate([obs, act], -1))[..., 0]
+
+
+def sample_action(mean: jax.Array, log_std: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Reparameterised tanh-Gaussian sample and its log-probability.
+
+    mean, log_std: [..., a]. Returns action [..., a] in (-1, 1) and log_prob [...].
+    """
+    u = mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape, mean.dtype)
+    gauss = -0.5 * (((u - mean) / jnp.exp(log_std)) ** 2 + 2 * log_std + jnp.log(2 * jnp.pi))
+    # log(1 - tanh(u)^2) in a form that stays finite for large |u|.
+    squash = 2.0 * (jnp.log(2.0) - u - jax.nn.softplus(-2.0 * u))
+    return jnp.tanh(u), jnp.sum(gauss - squash, axis=-1)
+
+
+def deterministic_action(mean: jax.Array) -> jax.Array:
+    """The evaluation action: tanh of the Gaussian mean."""
+    return jnp.tanh(mean)

@@ -1,0 +1,102 @@
+"""The run folder's files (SPEC §6): config.json, metrics.jsonl, summary.json."""
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any, Iterable
+
+import numpy as np
+
+from ccp_jax.config import Config
+
+FINAL_WINDOW = 10  # reported success = mean over the last 10 epochs (SPEC §3)
+
+
+def _json_default(x: Any):
+    if isinstance(x, (np.floating, np.integer)):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    raise TypeError(f"not JSON serialisable: {type(x)}")
+
+
+def write_json(path: Path, obj: Any) -> None:
+    """Writes atomically (temp file + rename), so a crash never leaves half a file."""
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n")
+    os.replace(tmp, path)
+
+
+def metric_rows(config: Config, epoch: int, metrics, wall_s: float) -> list[dict]:
+    """One metrics.jsonl row per grid member from an epoch's `EpochMetrics` (numpy, leading grid axis)."""
+    n_agents = config.num_agents
+    has_next = [config.algo == "csac" and n < n_agents - 1 for n in range(n_agents)]
+    rows = []
+    for member, (eta, seed) in enumerate(config.grid):
+        t, ev = metrics.train, metrics.eval
+        per_agent = lambda x: [float(v) for v in x[member]]
+        rows.append({
+            "member": member, "seed": seed, "eta": list(eta), "algo": config.algo, "epoch": epoch,
+            "env_steps": int(metrics.env_steps[member]),
+            "success_rate": float(ev.success_rate[member]),
+            "eval_return": float(ev.eval_return[member]),
+            "stage_reached_mean": float(ev.stage_reached_mean[member]),
+            "stage_fraction": per_agent(ev.stage_fraction),
+            "eval_episode_length": float(ev.episode_length[member]),
+            "train_success": float(metrics.train_success[member]),
+            "train_episodes": int(metrics.train_episodes[member]),
+            "q_loss": per_agent(t.q_loss), "pi_loss": per_agent(t.pi_loss), "alpha": per_agent(t.alpha),
+            "log_prob": per_agent(t.log_prob), "q_min": per_agent(t.q_min), "q_max": per_agent(t.q_max),
+            # η* needs a next critic; it is undefined (null) for the last agent.
+            "eta_star": [float(v) if h else None for v, h in zip(t.eta_star[member], has_next)],
+            "updated": per_agent(t.updated),
+            "buffer_fill": [int(v) / config.buffer_size for v in metrics.buffer_size[member]],
+            "epoch_wall_s": wall_s,
+        })
+    return rows
+
+
+def append_rows(path: Path, rows: Iterable[dict]) -> None:
+    with path.open("a") as f:
+        for row in rows:
+            f.write(json.dumps(row, default=_json_default) + "\n")
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def read_rows(path: Path) -> list[dict]:
+    with path.open() as f:
+        return [json.loads(line) for line in f if line.strip()]
+
+
+def summarise(config: Config, rows: list[dict], wall_s: float | None = None) -> dict:
+    """Per member: final success (mean of the last `FINAL_WINDOW` epochs) and learning milestones."""
+    members = []
+    for member, (eta, seed) in enumerate(config.grid):
+        mine = sorted((r for r in rows if r["member"] == member), key=lambda r: r["epoch"])
+        success = [r["success_rate"] for r in mine]
+        last = success[-FINAL_WINDOW:]
+        first = next((r["env_steps"] for r in mine if r["success_rate"] > 0), None)
+        members.append({
+            "member": member, "seed": seed, "eta": list(eta), "algo": config.algo,
+            "epochs": len(mine), "env_steps": mine[-1]["env_steps"] if mine else 0,
+            "final_success": float(np.mean(last)) if last else math.nan,
+            "final_return": float(np.mean([r["eval_return"] for r in mine[-FINAL_WINDOW:]])) if mine else math.nan,
+            "best_success": max(success, default=math.nan),
+            "first_success_env_steps": first,
+        })
+    return {"final_window_epochs": FINAL_WINDOW, "wall_s": wall_s, "members": members}
+
+
+def summary_table(summary: dict) -> str:
+    """A plain-text table of the summary, one line per member."""
+    lines = [f"{'member':>6}  {'algo':<5}  {'eta':<14}  {'seed':>4}  {'final success':>13}  "
+             f"{'final return':>12}  {'first success at':>16}"]
+    for m in summary["members"]:
+        eta = ",".join(f"{x:g}" for x in m["eta"])
+        first = "-" if m["first_success_env_steps"] is None else f"{m['first_success_env_steps']:,}"
+        lines.append(f"{m['member']:>6}  {m['algo']:<5}  {eta:<14}  {m['seed']:>4}  {m['final_success']:>13.2f}  "
+                     f"{m['final_return']:>12.1f}  {first:>16}")
+    return "\n".join(lines)

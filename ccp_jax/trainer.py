@@ -1,0 +1,110 @@
+"""The trainer: `make_train(config, env)` returns pure `init` and `train_step` functions.
+
+`train_step` is one epoch of one run — collect `steps_per_epoch` env steps,
+run `train_loops_per_epoch` joint updates of all agents, evaluate — and is a
+single jittable function. `make_grid_train` vmaps both over the grid axis
+(seeds × ratios), so a whole sweep is one compiled program.
+"""
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from brax.envs.base import Env, State
+from flax import struct
+
+from ccp_jax import buffer as replay
+from ccp_jax.buffer import ReplayBuffer, Transition
+from ccp_jax.collect import EvalMetrics, make_collect, make_evaluate
+from ccp_jax.config import Config
+from ccp_jax.learner import AgentState, UpdateMetrics, init_agents, make_networks, make_update
+
+
+class TrainState(struct.PyTreeNode):
+    """Everything a run carries between epochs (one grid member; the grid adds a leading axis)."""
+
+    agents: AgentState
+    buffer: ReplayBuffer
+    env_state: State  # leaves [num_envs, ...]
+    key: jax.Array
+    env_steps: jax.Array  # int32[]
+    epoch: jax.Array  # int32[]
+
+
+class EpochMetrics(NamedTuple):
+    """What one epoch reports. Per-agent fields are [N] (means over the epoch's updates)."""
+
+    env_steps: jax.Array
+    eval: EvalMetrics
+    train: UpdateMetrics
+    train_episodes: jax.Array
+    train_success: jax.Array
+    buffer_size: jax.Array  # int32[N]
+
+
+class Trainer(NamedTuple):
+    init: Callable[[jax.Array], TrainState]  # seed int32[] -> TrainState
+    train_step: Callable[[TrainState, jax.Array], tuple[TrainState, EpochMetrics]]  # (state, eta[N])
+
+
+def make_train(config: Config, env: Env) -> Trainer:
+    """Pure `init(seed)` and `train_step(state, eta)` for one run of `config` on `env`."""
+    if env.num_stages != config.num_stages:
+        raise ValueError(f"rooms: the env has {env.num_stages} stages but the config expects {config.num_stages}")
+    obs_size, action_size = env.observation_size, env.action_size
+    nets = make_networks(config, action_size)
+    collect = make_collect(config, env, nets.actor)
+    evaluate = make_evaluate(config, env, nets.actor)
+    update = make_update(config, nets, action_size)
+    num_channels = 1 if config.num_agents == 1 else config.num_stages
+    capacity = config.buffer_size
+
+    def init(seed: jax.Array) -> TrainState:
+        key = jax.random.PRNGKey(seed)
+        key, k_agents, k_env = jax.random.split(key, 3)
+        agents = init_agents(nets, k_agents, config.num_agents, obs_size, action_size)
+        example = Transition(obs=jnp.zeros((obs_size,)), action=jnp.zeros((action_size,)),
+                             rewards=jnp.zeros((num_channels,)), next_obs=jnp.zeros((obs_size,)),
+                             terminal=jnp.zeros(()), completed=jnp.zeros((num_channels,)))
+        buffer = replay.init_buffer(example, config.num_agents, capacity)
+        env_state = jax.vmap(env.reset)(jax.random.split(k_env, config.num_envs))
+        return TrainState(agents=agents, buffer=buffer, env_state=env_state, key=key,
+                          env_steps=jnp.int32(0), epoch=jnp.int32(0))
+
+    def train_step(state: TrainState, eta: jax.Array) -> tuple[TrainState, EpochMetrics]:
+        key, k_collect, k_train, k_eval = jax.random.split(state.key, 4)
+        env_state, buffer, stats = collect(state.agents.actor, state.env_state, state.buffer, k_collect,
+                                           state.env_steps)
+        ready = replay.ready(buffer, config.batch_size)
+
+        def loop(agents, k):
+            k_sample, k_update = jax.random.split(k)
+            batch = replay.sample(buffer, k_sample, config.batch_size)
+            return update(agents, batch, eta, ready, k_update)
+
+        agents, train_metrics = jax.lax.scan(loop, state.agents,
+                                             jax.random.split(k_train, config.train_loops_per_epoch))
+        eval_metrics = evaluate(agents.actor, k_eval)
+        env_steps = state.env_steps + config.steps_per_epoch
+        metrics = EpochMetrics(env_steps=env_steps, eval=eval_metrics,
+                               train=jax.tree.map(lambda x: x.mean(0), train_metrics),
+                               train_episodes=stats.episodes,
+                               train_success=stats.successes / jnp.maximum(stats.episodes, 1.0),
+                               buffer_size=buffer.size)
+        new_state = TrainState(agents=agents, buffer=buffer, env_state=env_state, key=key,
+                               env_steps=env_steps, epoch=state.epoch + 1)
+        return new_state, metrics
+
+    return Trainer(init=init, train_step=train_step)
+
+
+def make_grid_train(config: Config, env: Env) -> Trainer:
+    """`init(seeds int32[G])` and `train_step(states, etas float32[G, N])` over the grid axis, jitted.
+
+    The state is donated to `train_step`, so buffers are updated in place.
+    """
+    trainer = make_train(config, env)
+    return Trainer(init=jax.jit(jax.vmap(trainer.init)),
+                   train_step=jax.jit(jax.vmap(trainer.train_step), donate_argnums=0))
+
