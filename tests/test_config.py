@@ -1,0 +1,66 @@
+"""Bad input fails fast, naming the field; presets and the grid resolve as documented."""
+import pytest
+
+from ccp_jax.config import ConfigError, make_config
+from ccp_jax.train import Args, config_from_args
+
+
+@pytest.mark.parametrize("overrides, field", [
+    (dict(env="mujoco_soccer"), "env"),
+    (dict(algo="ppo"), "algo"),
+    (dict(rooms=1), "rooms"),
+    (dict(etas=((1.5,),)), "eta"),
+    (dict(etas=((-0.1,),)), "eta"),
+    (dict(rooms=3, etas=((0.1, 0.2, 0.3, 0.4),)), "eta_per_agent"),
+    (dict(rooms=3, etas=((0.1, 0.2, 0.3),)), "eta_per_agent"),  # N values only with normalise_last
+    (dict(batch_size=512, buffer_size=256), "batch_size"),
+    (dict(batch_size=0), "batch_size"),
+    (dict(buffer_size=-5), "buffer_size"),
+    (dict(steps_per_epoch=0), "steps_per_epoch"),
+    (dict(num_envs=3), "num_envs"),  # must divide steps_per_epoch
+    (dict(total_steps=10), "total_steps"),
+    (dict(gamma=1.0), "gamma"),
+    (dict(hidden=(64, 0)), "hidden"),
+    (dict(seeds=(1, 1)), "seeds"),
+    (dict(no_such_field=1), "no_such_field"),
+])
+def test_bad_config_names_the_field(overrides, field):
+    with pytest.raises(ConfigError) as err:
+        make_config("tiny", **overrides)
+    assert err.value.field == field
+    assert str(err.value).startswith(field + ":")
+
+
+def test_unknown_preset():
+    with pytest.raises(ConfigError, match="^preset:"):
+        make_config("huge")
+
+
+def test_paper_preset_matches_the_paper():
+    c = make_config("paper")
+    assert (c.gamma, c.buffer_size, c.batch_size, c.max_episode_steps, c.tau) == (0.95, 1_000_000, 256, 1000, 0.005)
+    assert (c.steps_per_epoch, c.train_loops_per_epoch, c.hidden, c.start_steps) == (5000, 1000, (256, 256), 1000)
+    assert c.num_epochs == 600 and c.eval_episodes == 10 and c.absorbing_success
+
+
+def test_eta_vectors_and_grid_order():
+    c = make_config("tiny", rooms=3, etas=((0.1,), (0.1, 1.0)), seeds=(4, 5))
+    eta, seed = c.grid_arrays()
+    assert eta.shape == (4, 3) and seed.tolist() == [4, 5, 4, 5]
+    assert eta[0].tolist() == pytest.approx([0.1, 0.1, 1.0])  # shared ratio, last agent 1
+    assert eta[2].tolist() == pytest.approx([0.1, 1.0, 1.0])  # per-agent vector
+    sac = make_config("tiny", rooms=3, algo="sac")
+    assert sac.num_agents == 1 and sac.grid_arrays()[0].shape == (1, 1)
+
+
+def test_cli_arguments_resolve():
+    c = config_from_args(Args(rooms=3, eta_per_agent=("0.1,1.0", "0.5,0.5"), seeds=2, preset="tiny"))
+    assert c.etas == ((0.1, 1.0), (0.5, 0.5)) and c.seeds == (0, 1) and c.grid_size == 4
+    with pytest.raises(ConfigError, match="^eta_per_agent:"):
+        config_from_args(Args(rooms=3, eta_per_agent=("0.1;1.0",), preset="tiny"))
+    with pytest.raises(ConfigError, match="^eta_per_agent:"):
+        config_from_args(Args(rooms=4, eta_per_agent=("0.1,1.0",), preset="tiny"))
+    with pytest.raises(ConfigError, match="^seeds:"):
+        config_from_args(Args(seeds=0, preset="tiny"))
+    with pytest.raises(ConfigError, match="^eta:"):
+        config_from_args(Args(eta=(0.1,), eta_per_agent=("0.1",), preset="tiny"))

@@ -1,0 +1,90 @@
+"""The joint update's wiring: cross-buffer critic terms, per-agent α and π, masking."""
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ccp_jax import losses
+from ccp_jax.buffer import Transition
+from ccp_jax.config import make_config
+from ccp_jax.learner import init_agents, make_networks, make_update
+from ccp_jax.networks import sample_action
+
+OBS, ACT, B = 5, 2, 16
+
+
+def _setup(algo):
+    config = make_config("tiny", algo=algo, rooms=2)
+    nets = make_networks(config, ACT)
+    agents = init_agents(nets, jax.random.PRNGKey(0), 2, OBS, ACT)
+    # Targets apart from the critics and distinct temperatures, so a wrong wiring shows.
+    noisy = jax.tree.map(lambda x: x + 0.3 * jax.random.normal(jax.random.PRNGKey(1), x.shape), agents.critic)
+    agents = agents.replace(target_critic=noisy, log_alpha=jnp.log(jnp.array([0.5, 2.0])))
+    k = jax.random.split(jax.random.PRNGKey(2), 5)
+    batch = Transition(obs=jax.random.normal(k[0], (2, B, OBS)), action=jax.random.uniform(k[1], (2, B, ACT), minval=-1),
+                       rewards=jax.random.uniform(k[2], (2, B, 2)), next_obs=jax.random.normal(k[3], (2, B, OBS)),
+                       terminal=(jax.random.uniform(k[4], (2, B)) < 0.2).astype(jnp.float32),
+                       completed=jnp.zeros((2, B, 2)).at[:, :3, 0].set(1.0))
+    return config, nets, agents, batch, jax.jit(make_update(config, nets, ACT))
+
+
+def _agent(tree, n):
+    return jax.tree.map(lambda x: x[n], tree)
+
+
+@pytest.fixture(scope="module")
+def csac():
+    return _setup("csac")
+
+
+def test_critic_terms_use_pi_n_and_alpha_n_for_both_critics(csac):
+    config, nets, agents, batch, update = csac
+    key = jax.random.PRNGKey(3)
+    _, metrics = update(agents, batch, jnp.array([0.3, 1.0]), jnp.array([True, True]), key)
+    k_next = jax.random.split(key, (2, 2))[0, 0]
+    b0 = jax.tree.map(lambda x: x[0], batch)
+    mean, log_std = nets.actor.apply(_agent(agents.actor, 0), b0.next_obs)
+    a_next, logp_next = sample_action(mean, log_std, k_next)
+    alpha0 = 0.5
+    expected = 0.0
+    for j in (0, 1):  # j = n and j = n + 1, both with π_0's next action and α_0
+        q_next = jnp.min(nets.critic.apply(_agent(agents.target_critic, j), b0.next_obs, a_next), 0)
+        y = losses.soft_target(b0.rewards[:, j], q_next, logp_next, alpha0, b0.terminal, b0.completed[:, j],
+                               config.gamma, 1.0 / (1.0 - config.gamma))
+        expected += losses.twin_q_loss(nets.critic.apply(_agent(agents.critic, j), b0.obs, b0.action), y)
+    assert float(metrics.q_loss[0]) == pytest.approx(float(expected), rel=1e-4)
+    np.testing.assert_allclose(metrics.alpha, [0.5, 2.0], rtol=1e-6)
+    assert float(metrics.eta_star[1]) == 1.0 and 0.0 <= float(metrics.eta_star[0]) <= 1.0
+
+
+def _changed(old, new, n):
+    return any(not np.array_equal(a[n], b[n]) for a, b in zip(jax.tree.leaves(old), jax.tree.leaves(new)))
+
+
+def test_under_filled_agent_is_masked_but_its_critic_gets_the_cross_term(csac):
+    _, _, agents, batch, update = csac
+    new, metrics = update(agents, batch, jnp.array([0.3, 1.0]), jnp.array([True, False]), jax.random.PRNGKey(4))
+    assert _changed(agents.actor, new.actor, 0) and not _changed(agents.actor, new.actor, 1)
+    assert float(new.log_alpha[1]) == float(agents.log_alpha[1]) and float(new.log_alpha[0]) != float(agents.log_alpha[0])
+    assert not _changed(agents.actor_opt, new.actor_opt, 1)
+    assert _changed(agents.critic, new.critic, 1)  # agent 0's batch trains critic 1 (Algorithm 2)
+    np.testing.assert_array_equal(metrics.updated, [1.0, 0.0])
+
+
+def test_naive_agents_do_not_touch_the_next_critic():
+    _, _, agents, batch, update = _setup("naive")
+    new, _ = update(agents, batch, jnp.array([0.3, 1.0]), jnp.array([True, False]), jax.random.PRNGKey(4))
+    assert _changed(agents.critic, new.critic, 0) and not _changed(agents.critic, new.critic, 1)
+
+
+def test_eta_one_is_plain_sac_on_normalised_own_critic_only(csac):
+    """With η = 1 the next critic cannot influence agent 0's actor step."""
+    _, _, agents, batch, update = csac
+    key, ready = jax.random.PRNGKey(5), jnp.array([True, True])
+    new_a, _ = update(agents, batch, jnp.array([1.0, 1.0]), ready, key)
+    shuffled = agents.replace(critic=jax.tree.map(lambda x: x.at[1].set(-x[1]), agents.critic))
+    new_b, _ = update(shuffled, batch, jnp.array([1.0, 1.0]), ready, key)
+    for a, b in zip(jax.tree.leaves(new_a.actor), jax.tree.leaves(new_b.actor)):
+        np.testing.assert_allclose(a[0], b[0], rtol=1e-5, atol=1e-7)
+    new_c, _ = update(shuffled, batch, jnp.array([0.0, 1.0]), ready, key)
+    assert _changed(new_a.actor, new_c.actor, 0)

@@ -1,0 +1,292 @@
+"""Peg in hole (envs_mjx/peg_in_hole.py): physics, the paper's grasp trade-off, the env contract.
+
+Everything that runs MJX shares one compiled program: a module-scoped fixture rolls out
+64 environments (jit + vmap + lax.scan) under four scripted policies, and the tests
+read its trajectories. On a 2-core CPU that is ~1 min to compile and ~20 s to run.
+"""
+from __future__ import annotations
+
+import os
+
+# MJX on CPU: XLA's fusion emitters make kinematics ~10x slower (see PEG_NOTES). Append the
+# switch before JAX starts, keeping anything the user set.
+if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
+    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=false").strip()
+
+import chex  # noqa: E402
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+from envs_mjx import peg_in_hole as P  # noqa: E402
+from envs_mjx.peg_in_hole import OBS_SLICES, PegInHole, render_frames, simulate_c  # noqa: E402
+
+B, T = 64, 140  # environments, control steps (2.8 s; thick-section runs succeed by ~step 120)
+THICK, CENTRE, RELEASE = range(0, 8), range(8, 16), range(16, 24)  # the rest act at random
+FULL_DEPTH = P.THIN_LEN  # 0.10 m of thin section past the block face
+
+
+def scripted(state, policy, key):
+    """Scripted grasp controllers, pure JAX (policy ids: 0 thick, 1 centre, 2 release, 3 random)."""
+    o, stage = state.obs, state.info["stage"]
+    grip_x, peg_x = o[OBS_SLICES["grip_pos"]][0], o[OBS_SLICES["peg_pos"]][0]
+    opening = o[OBS_SLICES["finger_opening"]][0]
+    # Thick section: the box's middle, 0.05 m behind the peg centre; centre grasp: the centre.
+    target = peg_x + jnp.where(policy == 1, 0.0, -(P.CENTRE_TO_SHOULDER + P.THICK_LEN / 2))
+    err = target - grip_x
+    closing = (jnp.abs(err) < 0.003) | (opening < 0.075)
+    grasp = jnp.stack([jnp.where(closing, 0.0, jnp.clip(err / 0.02, -1.0, 1.0)), jnp.where(closing, 1.0, -1.0)])
+    after = jnp.where(policy == 2, jnp.array([-1.0, -1.0]), jnp.array([1.0, 1.0]))  # release: open, back off
+    act = jnp.where(stage >= 1, after, grasp)
+    return jnp.where(policy == 3, jax.random.uniform(key, (2,), minval=-1.0, maxval=1.0), act)
+
+
+@pytest.fixture(scope="module")
+def env():
+    return PegInHole(episode_length=T)
+
+
+@pytest.fixture(scope="module")
+def run(env):
+    """64 environments, T steps each, one compiled program; numpy arrays [B, T, ...]."""
+
+    def one(key, policy):
+        k_reset, k_act = jax.random.split(key)
+        s0 = env.reset(k_reset)
+
+        def body(s, k):
+            s2 = env.step(s, scripted(s, policy, k))
+            d = s2.pipeline_state
+            out = dict(obs=s2.obs, reward=s2.reward, rewards=s2.info["rewards"], stage=s2.info["stage"],
+                       done=s2.done, truncation=s2.info["truncation"], success=s2.metrics["success"],
+                       steps=s2.info["steps"], depth=env.peg_depth(d), qpos=d.qpos, ctrl=d.ctrl,
+                       grip=d.site_xpos[env._grip])
+            return s2, out
+
+        _, traj = jax.lax.scan(body, s0, jax.random.split(k_act, T))
+        return s0, traj
+
+    policies = jnp.array([0] * 8 + [1] * 8 + [2] * 8 + [3] * (B - 24), jnp.int32)
+    keys = jax.random.split(jax.random.PRNGKey(0), B)
+    s0, traj = jax.jit(jax.vmap(one))(keys, policies)
+    jax.block_until_ready(traj)
+    return {"s0": s0, "traj": traj, "np": {k: np.asarray(v) for k, v in traj.items()}, "policies": policies}
+
+
+def _first(mask):
+    """Index of the first True along the last axis, or -1."""
+    return np.where(mask.any(-1), mask.argmax(-1), -1)
+
+
+# ----- the paper's point: where the peg is grasped decides whether it can go fully in -------------
+def test_thick_section_grasp_reaches_success(run):
+    tr = run["np"]
+    for i in THICK:
+        t_grasp, t_succ = _first(tr["stage"][i] >= 1), _first(tr["success"][i] > 0)
+        assert t_grasp >= 0, f"env {i}: no grasp"
+        assert t_succ > t_grasp, f"env {i}: no success after the grasp (final depth {tr['depth'][i, -1]:.4f})"
+        assert tr["depth"][i, t_succ] > FULL_DEPTH - 0.004  # fully in (within success_tol)
+        np.testing.assert_array_equal(tr["rewards"][i, t_succ], [1.0, 1.0])
+        assert tr["done"][i, t_succ] == 1.0 and tr["truncation"][i, t_succ] == 0.0
+        assert np.all(tr["done"][i, :t_succ] == 0.0)
+
+
+def test_centre_grasp_stalls_short_of_full_insertion(run):
+    tr = run["np"]
+    for i in CENTRE:
+        assert _first(tr["stage"][i] >= 1) >= 0, f"env {i}: no grasp"
+        assert not tr["success"][i].any()
+        # Pushed with full force until the end: the pads sit on the block face, ~30 mm short.
+        assert tr["depth"][i].max() < 0.075, tr["depth"][i].max()
+        assert 0.06 < tr["depth"][i, -1] < 0.075, tr["depth"][i, -1]
+        assert tr["grip"][i, -1, 0] > P.HOLE_FACE_X - P.PAD_HALF_X - 0.003  # fingers at the face
+        assert tr["rewards"][i, -1, 1] < 0.6  # exp(-20 * ~0.03)
+        # Timed out, not terminated.
+        assert tr["done"][i, -1] == 1.0 and tr["truncation"][i, -1] == 1.0
+
+
+def test_grasp_detection_is_a_closed_grasp(run, env):
+    tr = run["np"]
+    for i in list(THICK) + list(CENTRE):
+        t = _first(tr["stage"][i] >= 1)
+        opening = tr["obs"][i, t, OBS_SLICES["finger_opening"]][0]
+        thick = i in THICK
+        # Closed on the box (40 mm) or on the capsule (16 mm), not on air.
+        expected = 0.040 if thick else 0.016
+        assert abs(opening - expected) < 0.006, (i, opening)
+        assert tr["ctrl"][i, t, 7] <= -env.grasp_close_min  # commanded to close (ctrl = -a[1])
+
+
+# ----- contract invariants ------------------------------------------------------------------------
+def test_stage_never_decreases_and_rewards_are_consistent(run):
+    tr = run["np"]
+    stage, rewards = tr["stage"], tr["rewards"]
+    alive = np.cumsum(tr["done"], axis=1) - tr["done"] == 0  # steps up to and including the first done
+    assert set(np.unique(stage)) <= {0, 1}
+    dstage = np.diff(stage, axis=1)
+    assert np.all(dstage[alive[:, 1:]] >= 0)
+    assert np.all((rewards >= 0.0) & (rewards <= 1.0))
+    np.testing.assert_allclose(tr["reward"], rewards.sum(-1), rtol=1e-6)
+    assert np.all(rewards[..., 1][stage == 0] == 0.0)  # R_2 = 0 before the grasp
+    assert np.all(rewards[..., 0][stage == 1] == 1.0)  # R_1 = 1 once grasped
+    assert np.all(rewards[tr["success"] > 0] == 1.0)
+    assert np.all(tr["done"][tr["success"] > 0] == 1.0)
+    assert np.all(np.isfinite(tr["obs"]))
+    # the random policies reach grasps too, and nothing blew up (no NaN guard fired)
+    assert np.all(tr["truncation"][:, :-1] == 0.0)
+
+
+def test_release_after_grasp_keeps_stage(run):
+    tr = run["np"]
+    for i in RELEASE:
+        t = _first(tr["stage"][i] >= 1)
+        assert 0 <= t < T - 30
+        assert np.all(tr["stage"][i, t:] == 1)
+        assert np.all(tr["rewards"][i, t:, 0] == 1.0)
+        # it really let go: fingers open wide again, gripper moved away from the peg
+        assert tr["obs"][i, -1, OBS_SLICES["finger_opening"]][0] > 0.07
+        assert np.linalg.norm(tr["obs"][i, -1, OBS_SLICES["peg_minus_grip"]]) > 0.05
+
+
+def test_truncation_at_episode_length(run):
+    tr = run["np"]
+    np.testing.assert_array_equal(tr["steps"][:, -1], T)
+    no_success = ~tr["success"].any(-1)
+    assert np.all(tr["done"][no_success, -1] == 1.0)
+    assert np.all(tr["truncation"][no_success, -1] == 1.0)
+    assert np.all(tr["done"][no_success, :-1] == 0.0)
+    assert PegInHole.__init__.__defaults__[0] == 1000  # default episode_length
+
+
+def test_reset_randomisation_within_documented_ranges(run, env):
+    s0 = run["s0"]
+    q = np.asarray(s0.pipeline_state.qpos)
+    peg = q[:, env._peg_q:env._peg_q + 7]
+    gap = P.HOLE_FACE_X - P.PEG_HALF - peg[:, 0]
+    yaw = 2 * np.arctan2(peg[:, 6], peg[:, 3])
+    grip = np.asarray(s0.pipeline_state.site_xpos[:, env._grip])
+    eps = 1e-5
+    assert np.all((gap >= P.GAP_RANGE[0] - eps) & (gap <= P.GAP_RANGE[1] + eps))
+    assert np.all((peg[:, 1] >= P.PEG_Y_RANGE[0] - eps) & (peg[:, 1] <= P.PEG_Y_RANGE[1] + eps))
+    assert np.all((yaw >= P.PEG_YAW_RANGE[0] - eps) & (yaw <= P.PEG_YAW_RANGE[1] + eps))
+    np.testing.assert_allclose(peg[:, 2], P.AXIS_Z)
+    np.testing.assert_allclose(peg[:, 4:6], 0.0, atol=1e-7)  # upright: yaw only
+    # start posture from the interpolated IK grid: within 0.5 mm of the sampled grip point
+    assert np.all((grip[:, 0] >= P.GRIP_X0_RANGE[0] - 5e-4) & (grip[:, 0] <= P.GRIP_X0_RANGE[1] + 5e-4))
+    np.testing.assert_allclose(grip[:, 1:], [[0.0, P.AXIS_Z]] * B, atol=5e-4)
+    np.testing.assert_allclose(q[:, env._fing_q], 0.04)
+    # randomised: spread over the ranges, distinct per key
+    assert np.ptp(gap) > 0.5 * np.ptp(P.GAP_RANGE) and np.ptp(yaw) > 0.5 * np.ptp(P.PEG_YAW_RANGE)
+    assert len(np.unique(np.round(gap, 7))) == B
+    # the stage-0 reward at reset is the grasp reward
+    np.testing.assert_allclose(np.asarray(s0.info["rewards"])[:, 1], 0.0)
+    assert np.all(np.asarray(s0.info["stage"]) == 0)
+
+
+def test_jit_vmap_64_shapes_and_dtypes(run, env):
+    s0, traj = run["s0"], run["traj"]
+    assert (env.num_stages, env.action_size, env.observation_size, env.backend) == (2, 2, 41, "mjx")
+    chex.assert_shape(s0.obs, (B, env.observation_size))
+    chex.assert_type([s0.obs, s0.reward, s0.done, s0.info["rewards"], s0.info["truncation"],
+                      s0.metrics["success"]], jnp.float32)
+    chex.assert_shape([s0.reward, s0.done, s0.info["stage"], s0.info["truncation"], s0.metrics["success"]], (B,))
+    chex.assert_shape(s0.info["rewards"], (B, 2))
+    chex.assert_type([s0.info["stage"], s0.info["steps"]], jnp.int32)
+    chex.assert_shape(traj["obs"], (B, T, env.observation_size))
+    chex.assert_type([traj["obs"], traj["reward"], traj["rewards"], traj["done"], traj["truncation"]], jnp.float32)
+    chex.assert_type(traj["stage"], jnp.int32)
+    chex.assert_shape(traj["rewards"], (B, T, 2))
+    # the observation layout covers the vector exactly
+    covered = sorted(i for sl in OBS_SLICES.values() for i in range(sl.start, sl.stop))
+    assert covered == list(range(env.observation_size))
+
+
+def test_mjx_agrees_with_c_mujoco(run, env):
+    """Replay the MJX rollout's joint commands in C MuJoCo (same model, substeps, start).
+
+    Tolerance over the first 100 control steps (2 s: approach, grasp, most of the push):
+    peg centre within 3 mm, finger joints within 1 mm, arm joints within 0.01 rad. Both
+    simulators also agree on the outcome: full insertion for the thick-section grasp.
+    """
+    tr = run["np"]
+    q0 = np.asarray(run["s0"].pipeline_state.qpos)
+    for i in (THICK[0], CENTRE[0]):
+        qc = simulate_c(env, q0[i], tr["ctrl"][i])
+        qm = tr["qpos"][i]
+        pq = slice(env._peg_q, env._peg_q + 3)
+        n = 100
+        assert np.abs(qc[:n, pq] - qm[:n, pq]).max() < 3e-3
+        assert np.abs(qc[:n, env._fing_q] - qm[:n, env._fing_q]).max() < 1e-3
+        assert np.abs(qc[:n, :7] - qm[:n, :7]).max() < 1e-2
+        # outcome: depth of the tip past the face at the end, C vs MJX, within 3 mm
+        depth_c = _c_depth(env, qc[-1])
+        assert abs(depth_c - tr["depth"][i, -1]) < 3e-3, (i, depth_c, tr["depth"][i, -1])
+
+
+def _c_depth(env, qpos):
+    import mujoco
+
+    d = mujoco.MjData(env.mj_model)
+    d.qpos[:] = qpos
+    mujoco.mj_kinematics(env.mj_model, d)
+    return d.site_xpos[env.mj_model.site("peg_tip").id, 0] - P.HOLE_FACE_X
+
+
+# ----- rendering and helpers ------------------------------------------------------------------------
+def test_render_frames(run, env):
+    qpos = run["np"]["qpos"][THICK[0], ::60]  # 3 frames
+    try:
+        frames = render_frames(env, qpos, camera="side", height=96, width=128)
+    except RuntimeError as err:  # no GL here: the error must say what to do
+        assert "MUJOCO_GL" in str(err) and "libosmesa6" in str(err)
+        pytest.skip(f"no offscreen GL: {err}")
+    assert frames.shape == (3, 96, 128, 3) and frames.dtype == np.uint8
+    assert frames.std() > 5.0  # an image, not a blank buffer
+    assert np.abs(frames[0].astype(int) - frames[-1].astype(int)).mean() > 1.0  # the scene changed
+    with pytest.raises(ValueError):
+        render_frames(env, qpos, height=2000, width=2000)
+
+
+def test_cpu_xla_flags_appends_without_overriding():
+    assert P.cpu_xla_flags("") == P.XLA_CPU_FLAG
+    assert P.cpu_xla_flags("--foo=1") == "--foo=1 " + P.XLA_CPU_FLAG
+    assert P.cpu_xla_flags("--xla_cpu_use_fusion_emitters=true") == "--xla_cpu_use_fusion_emitters=true"
+
+
+def test_model_geometry_makes_the_point():
+    """Static check of the MJCF: the thin section fits the hole, the pads and thick section do not."""
+    import mujoco
+
+    m = mujoco.MjModel.from_xml_path(str(P.ASSET))
+    hole_half = m.geom("hole_left").pos[1] - m.geom("hole_left").size[1]  # inner edge of the side wall
+    thin_r = m.geom("peg_thin").size[0]
+    assert 0.001 <= hole_half - thin_r <= 0.004  # a few mm of clearance
+    assert m.geom("peg_thick").size[1] > hole_half and m.geom("peg_thick").size[2] > hole_half
+    pad = m.geom("pad_left").size
+    assert pad[0] == pytest.approx(P.PAD_HALF_X)
+    # centre of the peg (its frame origin) lies on the thin section, ahead of the shoulder
+    thick_front = m.geom("peg_thick").pos[0] + m.geom("peg_thick").size[0]
+    assert thick_front == pytest.approx(-P.CENTRE_TO_SHOULDER)
+    assert m.nu == 8 and m.njnt == 10 and m.npair == 13
+    np.testing.assert_allclose(m.jnt_range[m.joint("finger_left").id], [0.0, 0.04])
+
+
+@pytest.mark.slow
+def test_more_seeds_and_full_length_episodes():
+    """Slow: 16 thick + 16 centre grasps over random resets, with the default episode length."""
+    env = PegInHole()
+
+    def one(key, policy):
+        s = env.reset(key)
+
+        def body(s, k):
+            s2 = env.step(s, scripted(s, policy, k))
+            return s2, (s2.metrics["success"], env.peg_depth(s2.pipeline_state), s2.info["stage"])
+
+        return jax.lax.scan(body, s, jax.random.split(key, 300))[1]
+
+    policies = jnp.array([0] * 16 + [1] * 16, jnp.int32)
+    succ, depth, stage = map(np.asarray, jax.jit(jax.vmap(one))(jax.random.split(jax.random.PRNGKey(7), 32), policies))
+    assert succ[:16].any(-1).all()
+    assert not succ[16:].any() and depth[16:].max() < 0.075 and (stage[16:, -1] == 1).all()

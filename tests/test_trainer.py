@@ -1,0 +1,105 @@
+"""The trainer end to end: shapes, grid = single runs, determinism, learning, CLI outputs."""
+import json
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ccp_jax.config import ConfigError, make_config
+from ccp_jax.envs import make_env
+from ccp_jax.train import main
+from ccp_jax.trainer import make_grid_train
+from toy_env import Line
+
+GRID = make_config("tiny", rooms=2, etas=((0.1,), (0.9,)), seeds=(0, 1), total_steps=400)
+
+
+def _train(config, trainer, epochs):
+    eta, seed = config.grid_arrays()
+    state = trainer.init(jnp.asarray(seed))
+    history = []
+    for _ in range(epochs):
+        state, metrics = trainer.train_step(state, jnp.asarray(eta))
+        history.append(jax.device_get(metrics))
+    return jax.device_get(state), history
+
+
+@pytest.fixture(scope="module")
+def grid_run():
+    trainer = make_grid_train(GRID, make_env(GRID))
+    return trainer, _train(GRID, trainer, 2)
+
+
+def test_epoch_shapes_and_dtypes(grid_run):
+    _, (state, history) = grid_run
+    m = history[-1]
+    g, n = GRID.grid_size, GRID.num_agents
+    chex.assert_shape([m.eval.success_rate, m.eval.eval_return, m.env_steps], (g,))
+    chex.assert_shape([m.train.q_loss, m.train.pi_loss, m.train.alpha, m.train.eta_star, m.buffer_size], (g, n))
+    chex.assert_shape(m.eval.stage_fraction, (g, 2))
+    chex.assert_shape(state.buffer.data.obs, (g, n, GRID.buffer_size, 24))
+    assert state.buffer.data.obs.dtype == np.float32 and m.buffer_size.dtype == np.int32
+    np.testing.assert_array_equal(m.env_steps, [400] * g)
+    # Every collected step went to exactly one agent's buffer.
+    np.testing.assert_array_equal(m.buffer_size.sum(1), [400] * g)
+    assert np.all(np.isfinite(m.train.q_loss)) and np.all(m.eval.stage_fraction[:, 0] == 1.0)
+
+
+def test_same_seed_is_identical(grid_run):
+    trainer, (state, _) = grid_run
+    again, _ = _train(GRID, trainer, 2)
+    for a, b in zip(jax.tree.leaves(state.agents), jax.tree.leaves(again.agents)):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_grid_member_equals_the_run_alone(grid_run):
+    _, (state, history) = grid_run
+    alone = GRID.replace(etas=((0.9,),), seeds=(1,))
+    solo_state, solo_history = _train(alone, make_grid_train(alone, make_env(alone)), 2)
+    member = 3  # (eta 0.9, seed 1): ratios outermost
+    assert GRID.grid[member] == alone.grid[0]
+    for a, b in zip(jax.tree.leaves(state.agents), jax.tree.leaves(solo_state.agents)):
+        np.testing.assert_allclose(a[member], b[0], rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(history[-1].train.q_loss[member], solo_history[-1].train.q_loss[0], rtol=1e-4)
+    np.testing.assert_array_equal(state.buffer.size[member], solo_state.buffer.size[0])
+
+
+@pytest.mark.parametrize("algo", ["csac", "sac"])
+def test_learning_on_a_two_stage_line(algo):
+    """A point must cross two unit segments; random actions almost never make it in 50 steps."""
+    config = make_config("tiny", algo=algo, seeds=(0, 1), total_steps=4000, train_loops_per_epoch=200,
+                         hidden=(32, 32), batch_size=64, etas=((0.5,),))
+    trainer = make_grid_train(config, Line(2, 50))
+    _, history = _train(config, trainer, config.num_epochs)
+    success = np.array([m.eval.success_rate for m in history])  # [epochs, grid]
+    assert success[0].max() == 0.0
+    assert success[-5:].mean() >= 0.9, success
+
+
+def test_cli_writes_the_contract_files(tmp_path):
+    out = tmp_path / "run"
+    summary = main(["--preset", "tiny", "--rooms", "3", "--eta-per-agent", "0.1,1.0", "--seeds", "2",
+                    "--out", str(out), "--no-progress"])
+    config = json.loads((out / "config.json").read_text())
+    assert config["etas"] == [[0.1, 1.0]] and config["seeds"] == [0, 1] and config["num_agents"] == 3
+    rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert len(rows) == 2 * config["num_epochs"]
+    for key in ("member", "seed", "eta", "epoch", "env_steps", "success_rate", "eval_return",
+                "stage_reached_mean", "q_loss", "pi_loss", "alpha", "eta_star"):
+        assert key in rows[0], key
+    assert rows[0]["eta"] == [0.1, 1.0, 1.0] and len(rows[0]["q_loss"]) == 3 and rows[0]["eta_star"][2] is None
+    saved = json.loads((out / "summary.json").read_text())
+    assert [m["seed"] for m in saved["members"]] == [0, 1] == [m["seed"] for m in summary["members"]]
+    assert all(0.0 <= m["final_success"] <= 1.0 for m in saved["members"])
+    before = (out / "metrics.jsonl").read_bytes()
+    with pytest.raises(ConfigError, match="^out:"):
+        main(["--preset", "tiny", "--out", str(out), "--no-progress"])
+    assert (out / "metrics.jsonl").read_bytes() == before
+
+
+@pytest.mark.parametrize("algo", ["naive", "sac"])
+def test_baselines_run_through_the_cli(tmp_path, algo):
+    summary = main(["--preset", "tiny", "--algo", algo, "--out", str(tmp_path / algo), "--no-progress"])
+    assert summary["members"][0]["algo"] == algo and summary["members"][0]["env_steps"] == 400
