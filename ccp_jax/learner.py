@@ -4,8 +4,8 @@ One call of `update` is one training loop of Algorithm 2: every agent samples
 a batch from its own buffer, and all critics, actors and temperatures take one
 optimiser step. Critic j receives two terms — its own (batch b_j, policy π_j)
 and, for CSAC, the cross-buffer term from agent j − 1 (batch b_{j−1}, policy
-π_{j−1}) — which a shift of the stacked critic parameters (`_next`) wires up
-without any Python loop over agents.
+π_{j−1}) — which "slots" of stacked critic parameters (see `make_update`)
+wire up without any Python loop over agents.
 """
 from __future__ import annotations
 
@@ -70,11 +70,6 @@ def init_agents(nets: Networks, key: jax.Array, num_agents: int, obs_size: int, 
     return jax.vmap(one)(jax.random.split(key, num_agents))
 
 
-def _next(tree: Params) -> Params:
-    """Shift the agent axis by one: index n holds agent n + 1's leaves (the last wraps, masked)."""
-    return jax.tree.map(lambda x: jnp.roll(x, -1, axis=0), tree)
-
-
 def _min_q(critic: TwinCritic, params: Params, obs: jax.Array, act: jax.Array) -> jax.Array:
     return jnp.min(critic.apply(params, obs, act), axis=0)
 
@@ -101,60 +96,68 @@ def make_update(config: Config, nets: Networks, action_size: int):
     n_agents = config.num_agents
     cooperative = config.algo == "csac" and n_agents > 1
     agent_ids = jnp.arange(n_agents)
-    has_next = cooperative & (agent_ids < n_agents - 1)  # bool[N]
-    coop_actor = has_next | (config.normalise_last & (agent_ids == n_agents - 1))
     # Channel reward once its subtask is done: 1 per subtask, N for the summed SAC reward.
     absorbing = (config.num_stages if config.algo == "sac" else 1.0) / (1.0 - config.gamma)
     target_entropy = -float(action_size)
+    own_ids = jnp.zeros_like(agent_ids) if n_agents == 1 else agent_ids
     actor_apply = jax.vmap(nets.actor.apply)
     critic_min = jax.vmap(lambda p, o, a: _min_q(nets.critic, p, o, a))
     critic_twin = jax.vmap(nets.critic.apply)
+    soft_target = jax.vmap(losses.soft_target, in_axes=(0, 0, 0, 0, 0, 0, None, None))
 
-    def total_loss(trainable, frozen, batch: Transition, eta, ready, keys):
+    # CSAC evaluates critic n on batch b_n and critic n + 1 on b_n for n < N − 1. Both sets run
+    # as one stacked call over 2N − 1 "slots": slots [0, N) are (Q_n, b_n), slots [N, 2N − 1)
+    # are (Q_{n+1}, b_n). Other algorithms have only the first N slots.
+    if cooperative:
+        slot_params = lambda t: jax.tree.map(lambda x: jnp.concatenate([x, x[1:]]), t)
+        slot_data = lambda x: jnp.concatenate([x, x[:-1]])
+        slot_ids = jnp.concatenate([own_ids, agent_ids[1:]])  # reward channel of each slot
+    else:
+        slot_params, slot_data, slot_ids = (lambda t: t), (lambda x: x), own_ids
+
+    def channel(x: jax.Array) -> jax.Array:
+        """Each slot's reward channel: [slots, B, R] -> [slots, B]."""
+        return jnp.take_along_axis(x, slot_ids[:, None, None], axis=2)[..., 0]
+
+    def total_loss(trainable, target_critic, batch: Transition, eta, ready, keys):
         actor, critic, log_alpha = trainable
-        target_critic = frozen
         alpha = jnp.exp(jax.lax.stop_gradient(log_alpha))  # [N]
         k_next, k_pi = keys[:, 0], keys[:, 1]
 
         # Critic targets with π_n's next action and α_n, for j = n and j = n + 1.
         next_mean, next_log_std = actor_apply(jax.lax.stop_gradient(actor), batch.next_obs)
         next_act, next_logp = jax.vmap(sample_action)(next_mean, next_log_std, k_next)
-        channel = lambda x, ids: jnp.take_along_axis(x, ids[:, None, None], axis=2)[..., 0]  # [N, B, R] -> [N, B]
-        own_ids = jnp.zeros_like(agent_ids) if n_agents == 1 else agent_ids
-        target = jax.vmap(losses.soft_target, in_axes=(0, 0, 0, 0, 0, 0, None, None))
-        y_own = target(channel(batch.rewards, own_ids), critic_min(target_critic, batch.next_obs, next_act),
-                       next_logp, alpha, batch.terminal, channel(batch.completed, own_ids), config.gamma, absorbing)
-        q_own_loss = jax.vmap(losses.twin_q_loss)(critic_twin(critic, batch.obs, batch.action), y_own)
-        q_loss = q_own_loss
-        if cooperative:
-            next_ids = (agent_ids + 1) % n_agents
-            y_next = target(channel(batch.rewards, next_ids), critic_min(_next(target_critic), batch.next_obs, next_act),
-                            next_logp, alpha, batch.terminal, channel(batch.completed, next_ids), config.gamma,
-                            absorbing)
-            q_next_loss = jax.vmap(losses.twin_q_loss)(critic_twin(_next(critic), batch.obs, batch.action), y_next)
-            q_loss = q_own_loss + jnp.where(has_next, q_next_loss, 0.0)
+        q_target = critic_min(slot_params(target_critic), slot_data(batch.next_obs), slot_data(next_act))
+        y = soft_target(channel(slot_data(batch.rewards)), q_target, slot_data(next_logp), slot_data(alpha),
+                        slot_data(batch.terminal), channel(slot_data(batch.completed)), config.gamma, absorbing)
+        q_slot_loss = jax.vmap(losses.twin_q_loss)(
+            critic_twin(slot_params(critic), slot_data(batch.obs), slot_data(batch.action)), y)
+        q_own_loss, q_next_loss = q_slot_loss[:n_agents], q_slot_loss[n_agents:]
 
         # Actor: reparameterised a ~ π_n(s), critics held fixed.
         mean, log_std = actor_apply(actor, batch.obs)
         act, logp = jax.vmap(sample_action)(mean, log_std, k_pi)
-        frozen_critic = jax.lax.stop_gradient(critic)
-        q_pi = critic_min(frozen_critic, batch.obs, act)  # [N, B]
+        q_pi_slots = critic_min(slot_params(jax.lax.stop_gradient(critic)), slot_data(batch.obs), slot_data(act))
+        q_pi, q_pi_next = q_pi_slots[:n_agents], q_pi_slots[n_agents:]  # [N, B], [N − 1, B]
         pi_loss = jax.vmap(losses.sac_actor_loss)(logp, q_pi, alpha)
+        coop_loss = jax.vmap(losses.coop_actor_loss, in_axes=(0, 0, 0, 0, 0, None))
         eta_star = jnp.ones((n_agents,))
-        if cooperative or config.normalise_last:
-            q_pi_next = critic_min(_next(frozen_critic), batch.obs, act) if cooperative else q_pi
-            coop = jax.vmap(losses.coop_actor_loss, in_axes=(0, 0, 0, 0, 0, None))(
-                logp, q_pi, q_pi_next, jnp.where(has_next, eta, 1.0), alpha, config.norm_eps)
-            pi_loss = jnp.where(coop_actor, coop, pi_loss)
-            eta_star = jnp.where(has_next, jax.vmap(losses.eta_star, in_axes=(0, 0, None))(
-                q_pi, q_pi_next, config.norm_eps), 1.0)
+        if cooperative:
+            lead = slice(0, n_agents - 1)
+            pi_loss = pi_loss.at[lead].set(coop_loss(logp[lead], q_pi[lead], q_pi_next, eta[lead], alpha[lead],
+                                                     config.norm_eps))
+            eta_star = eta_star.at[lead].set(jax.vmap(losses.eta_star, in_axes=(0, 0, None))(
+                q_pi[lead], q_pi_next, config.norm_eps))
+        if config.normalise_last:  # η_N = 1 on the normalised own critic
+            last = slice(n_agents - 1, n_agents)
+            pi_loss = pi_loss.at[last].set(coop_loss(logp[last], q_pi[last], q_pi[last], jnp.ones((1,)),
+                                                     alpha[last], config.norm_eps))
         a_loss = jax.vmap(losses.alpha_loss, in_axes=(0, 0, None))(log_alpha, logp, target_entropy)
 
         mask = ready.astype(jnp.float32)
         # Critic j's cross term comes from agent j − 1's batch, so it is masked by that agent's readiness.
-        total = jnp.sum(mask * (q_own_loss + pi_loss + a_loss))
-        if cooperative:
-            total += jnp.sum(mask * jnp.where(has_next, q_next_loss, 0.0))
+        total = jnp.sum(mask * (q_own_loss + pi_loss + a_loss)) + jnp.sum(slot_data(mask)[n_agents:] * q_next_loss)
+        q_loss = q_own_loss.at[: n_agents - 1].add(q_next_loss) if cooperative else q_own_loss
         metrics = UpdateMetrics(q_loss=q_loss, pi_loss=pi_loss, alpha=alpha, log_prob=jnp.mean(logp, -1),
                                 q_min=jnp.min(q_pi, -1), q_max=jnp.max(q_pi, -1), eta_star=eta_star,
                                 updated=mask)
@@ -172,7 +175,7 @@ def make_update(config: Config, nets: Networks, action_size: int):
         grads, metrics = jax.grad(total_loss, has_aux=True)(trainable, agents.target_critic, batch, eta, ready, keys)
         g_actor, g_critic, g_alpha = grads
         # A critic moves when its own buffer or (CSAC) the previous agent's buffer is ready.
-        critic_ready = ready | (jnp.roll(ready, 1) & jnp.roll(has_next, 1))
+        critic_ready = ready.at[1:].set(ready[1:] | ready[:-1]) if cooperative else ready
         vstep = lambda tx: jax.vmap(lambda p, g, o, m: step_opt(tx, p, g, o, m))
         actor, actor_opt = vstep(nets.actor_tx)(agents.actor, g_actor, agents.actor_opt, ready)
         critic, critic_opt = vstep(nets.critic_tx)(agents.critic, g_critic, agents.critic_opt, critic_ready)

@@ -1,0 +1,97 @@
+"""Joint-update throughput against the matmul roof, measured in one process.
+
+    python experiments/bench/update_speed.py --hidden 256 256 --rooms 3 --grid 1
+
+Prints: FLOPs of one joint update of all agents (XLA's own count), updates per
+second (median of --reps timed scans of --loops updates, compile excluded),
+the throughput of a bare jitted matmul chain with the layer's shapes, and the
+fraction of that roof the update reaches.
+"""
+from __future__ import annotations
+
+import dataclasses
+import statistics
+import time
+
+import jax
+import jax.numpy as jnp
+import tyro
+
+from ccp_jax import buffer as replay
+from ccp_jax.buffer import Transition
+from ccp_jax.config import make_config
+from ccp_jax.learner import init_agents, make_networks, make_update
+
+
+@dataclasses.dataclass
+class Args:
+    hidden: tuple[int, ...] = (256, 256)
+    rooms: int = 3
+    algo: str = "csac"
+    grid: int = 1
+    batch: int = 256
+    loops: int = 50
+    reps: int = 3
+    obs: int = 24
+    act: int = 2
+
+
+def timed(f, *args, reps: int) -> float:
+    jax.block_until_ready(f(*args))  # compile
+    times = []
+    for _ in range(reps):
+        t = time.perf_counter()
+        jax.block_until_ready(f(*args))
+        times.append(time.perf_counter() - t)
+    return statistics.median(times)
+
+
+def matmul_roof(batch: int, width: int, reps: int) -> float:
+    """FLOP/s of a jitted chain of [batch, width] @ [width, width] products."""
+    x = jnp.ones((batch, width)) / width
+    w = jnp.eye(width) + 1e-3
+    chain = 200
+
+    @jax.jit
+    def f(x, w):
+        return jax.lax.fori_loop(0, chain, lambda i, y: jnp.tanh(y @ w), x)
+
+    return 2 * batch * width * width * chain / timed(f, x, w, reps=reps)
+
+
+def main(args: Args) -> dict:
+    config = make_config("paper", rooms=args.rooms, algo=args.algo, hidden=args.hidden, batch_size=args.batch)
+    n = config.num_agents
+    nets = make_networks(config, args.act)
+    update = make_update(config, nets, args.act)
+    keys = jax.random.split(jax.random.PRNGKey(0), args.grid)
+    agents = jax.vmap(lambda k: init_agents(nets, k, n, args.obs, args.act))(keys)
+    r = config.num_agents if args.algo != "sac" else 1
+    batch = Transition(obs=jnp.ones((args.grid, n, args.batch, args.obs)), action=jnp.zeros((args.grid, n, args.batch, args.act)),
+                       rewards=jnp.ones((args.grid, n, args.batch, r)), next_obs=jnp.ones((args.grid, n, args.batch, args.obs)),
+                       terminal=jnp.zeros((args.grid, n, args.batch)), completed=jnp.zeros((args.grid, n, args.batch, r)))
+    eta, ready = jnp.full((args.grid, n), 0.5), jnp.ones((args.grid, n), bool)
+    step = jax.vmap(update, in_axes=(0, 0, 0, 0, None))
+
+    flops = jax.jit(step).lower(agents, batch, eta, ready, keys[0]).compile().cost_analysis()
+    flops = (flops[0] if isinstance(flops, list) else flops)["flops"]
+
+    @jax.jit
+    def many(agents):
+        def body(a, k):
+            return step(a, batch, eta, ready, k)[0], None
+        return jax.lax.scan(body, agents, jax.random.split(keys[0], args.loops))[0]
+
+    per_update = timed(many, agents, reps=args.reps) / args.loops
+    roof = matmul_roof(args.batch, max(args.hidden), args.reps)
+    result = {"hidden": args.hidden, "agents": n, "grid": args.grid, "gflop_per_joint_update": flops / 1e9,
+              "joint_updates_per_s": 1 / per_update, "ms_per_agent_update": 1e3 * per_update / (n * args.grid),
+              "achieved_gflops": flops / per_update / 1e9, "roof_gflops": roof / 1e9,
+              "fraction_of_roof": flops / per_update / roof}
+    for k, v in result.items():
+        print(f"{k:>24}: {v:.4g}" if isinstance(v, float) else f"{k:>24}: {v}")
+    return result
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))
