@@ -121,6 +121,14 @@ class Config:
         d.update(num_stages=self.num_stages, num_agents=self.num_agents, num_epochs=self.num_epochs, grid_size=self.grid_size)
         return d
 
+    @classmethod
+    def from_dict(cls, d: dict) -> "Config":
+        """Inverse of `to_dict` (JSON lists become tuples; derived entries are ignored)."""
+        def tupled(x):
+            return tuple(tupled(v) for v in x) if isinstance(x, list) else x
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: tupled(v) for k, v in d.items() if k in names})
+
     def replace(self, **changes) -> "Config":
         return dataclasses.replace(self, **changes)
 

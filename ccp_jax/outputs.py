@@ -66,6 +66,13 @@ def append_rows(path: Path, rows: Iterable[dict]) -> None:
         os.fsync(f.fileno())
 
 
+def write_rows(path: Path, rows: Iterable[dict]) -> None:
+    """Replaces the file's rows atomically."""
+    tmp = path.with_suffix(path.suffix + ".tmp")
+    tmp.write_text("".join(json.dumps(row, default=_json_default) + "\n" for row in rows))
+    os.replace(tmp, path)
+
+
 def read_rows(path: Path) -> list[dict]:
     with path.open() as f:
         return [json.loads(line) for line in f if line.strip()]

@@ -8,45 +8,52 @@ grid member is one call of the compiled, vmapped `train_step`.
 from __future__ import annotations
 
 import dataclasses
+import json
 import time
 from pathlib import Path
 from typing import Literal, Optional
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import tyro
 from tqdm.auto import tqdm
 
-from ccp_jax import outputs
-from ccp_jax.config import Config, ConfigError, PresetName, make_config
+from ccp_jax import checkpoint, outputs
+from ccp_jax.config import PRESETS, Config, ConfigError, PresetName, make_config
 from ccp_jax.envs import make_env
 from ccp_jax.trainer import make_grid_train
 
 
 @dataclasses.dataclass
 class Args:
-    """Train CSAC (or a baseline) on a multi-stage task; every ratio × seed in one vmapped program."""
+    """Train CSAC (or a baseline) on a multi-stage task; every ratio × seed in one vmapped program.
 
-    env: str = "maze"
-    """Environment: maze, peg, or 'module.path:factory' returning an env that meets the contract."""
-    rooms: int = 2
-    """Number of maze rooms (stages)."""
-    algo: Literal["csac", "naive", "sac"] = "csac"
-    """csac: cooperative agents; naive: independent agents; sac: one end-to-end agent."""
+    Options left unset take the preset's value (or, with --resume, the resumed run's).
+    """
+
+    env: Optional[str] = None
+    """Environment: maze (default), peg, or 'module.path:factory' returning an env that meets the contract."""
+    rooms: Optional[int] = None
+    """Number of maze rooms (stages); default 2."""
+    algo: Optional[Literal["csac", "naive", "sac"]] = None
+    """csac (default): cooperative agents; naive: independent agents; sac: one end-to-end agent."""
     eta: Optional[tuple[float, ...]] = None
     """Grid of shared cooperative ratios in [0, 1] (default 0.1)."""
     eta_per_agent: Optional[tuple[str, ...]] = None
     """Grid of per-agent ratio vectors, each 'A,B,...' with one value per cooperative agent (rooms − 1)."""
-    seeds: int = 1
-    """Seeds per ratio: 0 .. seeds−1 (shifted by --first-seed)."""
+    seeds: Optional[int] = None
+    """Seeds per ratio (default 1): first_seed .. first_seed + seeds − 1."""
     first_seed: int = 0
-    preset: PresetName = "small"
-    """paper: the paper's sizes; small: [64, 64] nets (SPEC §7); tiny: seconds-scale, for tests."""
+    preset: Optional[PresetName] = None
+    """paper: the paper's sizes; small (default): [64, 64] nets (SPEC §7); tiny: seconds-scale, for tests."""
     total_steps: Optional[int] = None
-    """Environment steps per run (default: the preset's)."""
+    """Environment steps per run (default: the preset's). May be raised when resuming."""
     out: Optional[Path] = None
     """Run folder (default runs/<env>-<algo>-<time>); must not already hold a run."""
+    resume: Optional[Path] = None
+    """Continue the run in this folder from its latest checkpoint."""
+    checkpoint_every: int = 10
+    """Save a checkpoint every K epochs (and always after the last); 0: only after the last."""
     num_envs: Optional[int] = None
     hidden: Optional[tuple[int, ...]] = None
     batch_size: Optional[int] = None
@@ -60,6 +67,10 @@ class Args:
     """Show a progress bar."""
 
 
+OVERRIDES = ("total_steps", "num_envs", "hidden", "batch_size", "buffer_size", "steps_per_epoch",
+             "train_loops_per_epoch", "eval_episodes", "max_episode_steps", "gamma")
+
+
 def parse_eta_vector(text: str) -> tuple[float, ...]:
     try:
         return tuple(float(x) for x in text.split(","))
@@ -67,24 +78,29 @@ def parse_eta_vector(text: str) -> tuple[float, ...]:
         raise ConfigError("eta_per_agent", f"cannot read {text!r}; write ratios as 'A,B' (e.g. 0.1,1.0)") from None
 
 
-def config_from_args(args: Args) -> Config:
-    """The validated `Config` the arguments describe (raises `ConfigError` naming the field)."""
-    if args.seeds < 1:
+def config_from_args(args: Args, base: Optional[Config] = None) -> Config:
+    """The validated `Config` the arguments describe, on top of `base` (a resumed run) or the preset."""
+    if args.seeds is not None and args.seeds < 1:
         raise ConfigError("seeds", f"must be >= 1, got {args.seeds}")
     if args.eta is not None and args.eta_per_agent is not None:
         raise ConfigError("eta", "give either --eta or --eta-per-agent, not both")
+    fields = {} if base is None else dataclasses.asdict(base)
+    if base is None or args.preset is not None:
+        preset = args.preset or "small"
+        if preset not in PRESETS:
+            raise ConfigError("preset", f"unknown preset {preset!r}; choose one of {tuple(PRESETS)}")
+        fields.update(PRESETS[preset])
+    explicit = {k: getattr(args, k) for k in ("env", "rooms", "algo") + OVERRIDES if getattr(args, k) is not None}
     if args.eta_per_agent is not None:
-        etas = tuple(parse_eta_vector(t) for t in args.eta_per_agent)
-    else:
-        etas = tuple((x,) for x in (args.eta or (0.1,)))
-    overrides = {k: getattr(args, k) for k in ("total_steps", "num_envs", "hidden", "batch_size", "buffer_size",
-                                               "steps_per_epoch", "train_loops_per_epoch", "eval_episodes",
-                                               "max_episode_steps", "gamma") if getattr(args, k) is not None}
-    rooms = args.rooms
-    if ":" in args.env:  # a user's env decides its own number of stages
-        rooms = make_env(make_config(args.preset, env=args.env)).num_stages
-    return make_config(args.preset, env=args.env, rooms=rooms, algo=args.algo, etas=etas,
-                       seeds=tuple(range(args.first_seed, args.first_seed + args.seeds)), **overrides)
+        explicit["etas"] = tuple(parse_eta_vector(t) for t in args.eta_per_agent)
+    elif args.eta is not None or base is None:
+        explicit["etas"] = tuple((x,) for x in (args.eta or (0.1,)))
+    if args.seeds is not None or base is None:
+        explicit["seeds"] = tuple(range(args.first_seed, args.first_seed + (args.seeds or 1)))
+    fields.update(explicit)
+    if ":" in fields.get("env", ""):  # a user's env decides its own number of stages
+        fields["rooms"] = make_env(make_config("tiny", env=fields["env"])).num_stages
+    return make_config("paper", **fields)
 
 
 def prepare_out(out: Optional[Path], config: Config) -> Path:
@@ -92,28 +108,58 @@ def prepare_out(out: Optional[Path], config: Config) -> Path:
     if out is None:
         out = Path("runs") / f"{config.env.replace(':', '_')}-{config.algo}-{time.strftime('%Y%m%d-%H%M%S')}"
     if (out / "config.json").exists() or (out / "metrics.jsonl").exists():
-        raise ConfigError("out", f"{out} already holds a run; choose another --out")
+        raise ConfigError("out", f"{out} already holds a run; choose another --out, or continue it with --resume {out}")
     out.mkdir(parents=True, exist_ok=True)
     return out
 
 
-def run(config: Config, out: Path, progress: bool = True) -> dict:
-    """Trains the grid of `config`, writing config.json, metrics.jsonl and summary.json to `out`.
+def resume_config(args: Args) -> Config:
+    """The resumed run's config; arguments given again must agree with it (total_steps may grow)."""
+    run_dir = args.resume
+    try:
+        saved = Config.from_dict(json.loads((run_dir / "config.json").read_text()))
+    except FileNotFoundError:
+        raise ConfigError("resume", f"{run_dir} holds no run (no config.json)") from None
+    except (json.JSONDecodeError, TypeError) as err:
+        raise ConfigError("resume", f"{run_dir / 'config.json'} is unreadable: {err}") from None
+    if args.out is not None and args.out != run_dir:
+        raise ConfigError("out", f"--out {args.out} differs from --resume {run_dir}; give only --resume")
+    config = config_from_args(args, base=saved)
+    for field in dataclasses.fields(Config):
+        old, new = getattr(saved, field.name), getattr(config, field.name)
+        if field.name != "total_steps" and old != new:
+            raise ConfigError(field.name, f"the run in {run_dir} was trained with {old!r}, got {new!r}; "
+                                          "start a new run to change it")
+    return config
 
+
+def run(config: Config, out: Path, progress: bool = True, resume: bool = False,
+        checkpoint_every: int = 10) -> dict:
+    """Trains the grid of `config` in `out`: config.json, metrics.jsonl, summary.json, checkpoints/.
+
+    With `resume`, continues from the latest checkpoint in `out`; metrics rows
+    written after that checkpoint are replaced by their (identical) recomputation.
     Returns the summary (per member: final success = mean of the last 10 epochs).
     """
     env = make_env(config)
     trainer = make_grid_train(config, env)
-    outputs.write_json(out / "config.json", config.to_dict())
-    metrics_path = out / "metrics.jsonl"
     eta, seed = config.grid_arrays()
-    eta = jnp.asarray(eta)
-
+    mngr = checkpoint.manager(out)
+    metrics_path = out / "metrics.jsonl"
     start = time.time()
-    state = trainer.init(jnp.asarray(seed))
-    rows: list[dict] = []
-    bar = tqdm(range(config.num_epochs), desc=f"{config.algo} {config.env} x{config.grid_size}",
-               unit="epoch", disable=not progress, dynamic_ncols=True)
+    if resume:
+        first_epoch, state = checkpoint.restore(mngr, trainer.abstract_state(seed))
+        if first_epoch > config.num_epochs:
+            raise ConfigError("total_steps", f"the run already has {first_epoch} epochs, more than {config.num_epochs}")
+        rows = [r for r in outputs.read_rows(metrics_path) if r["epoch"] <= first_epoch]
+        outputs.write_rows(metrics_path, rows)
+    else:
+        first_epoch, state, rows = 0, trainer.init(seed), []
+    outputs.write_json(out / "config.json", config.to_dict())
+
+    bar = tqdm(range(first_epoch, config.num_epochs), initial=first_epoch, total=config.num_epochs,
+               desc=f"{config.algo} {config.env} x{config.grid_size}", unit="epoch", disable=not progress,
+               dynamic_ncols=True)
     for epoch in bar:
         t0 = time.time()
         state, metrics = trainer.train_step(state, eta)
@@ -121,9 +167,12 @@ def run(config: Config, out: Path, progress: bool = True) -> dict:
         epoch_rows = outputs.metric_rows(config, epoch + 1, metrics, time.time() - t0)
         outputs.append_rows(metrics_path, epoch_rows)
         rows.extend(epoch_rows)
+        if epoch + 1 == config.num_epochs or (checkpoint_every and (epoch + 1) % checkpoint_every == 0):
+            checkpoint.save(mngr, epoch + 1, state)
         success = np.asarray(metrics.eval.success_rate)
         bar.set_postfix(steps=f"{int(metrics.env_steps.max()):,}", best_success=f"{success.max():.2f}",
                         mean_success=f"{success.mean():.2f}")
+    mngr.close()
     summary = outputs.summarise(config, rows, wall_s=time.time() - start)
     outputs.write_json(out / "summary.json", summary)
     return summary
@@ -131,11 +180,17 @@ def run(config: Config, out: Path, progress: bool = True) -> dict:
 
 def main(argv: Optional[list[str]] = None) -> dict:
     args = tyro.cli(Args, args=argv)
-    config = config_from_args(args)
-    out = prepare_out(args.out, config)
-    print(f"Training {config.grid_size} run(s) of {config.algo} on {config.env} "
+    if args.checkpoint_every < 0:
+        raise ConfigError("checkpoint_every", f"must be >= 0, got {args.checkpoint_every}")
+    if args.resume is not None:
+        config, out = resume_config(args), args.resume
+    else:
+        config = config_from_args(args)
+        out = prepare_out(args.out, config)
+    print(f"{'Resuming' if args.resume else 'Training'} {config.grid_size} run(s) of {config.algo} on {config.env} "
           f"({config.num_stages} stages, {config.num_epochs} epochs of {config.steps_per_epoch} steps) -> {out}")
-    summary = run(config, out, progress=args.progress)
+    summary = run(config, out, progress=args.progress, resume=args.resume is not None,
+                  checkpoint_every=args.checkpoint_every)
     print(outputs.summary_table(summary))
     print(f"wall time {summary['wall_s']:.0f} s; files in {out}")
     return summary

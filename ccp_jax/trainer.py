@@ -7,12 +7,14 @@ single jittable function. `make_grid_train` vmaps both over the grid axis
 """
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from typing import Callable, NamedTuple, Sequence
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from brax.envs.base import Env, State
 from flax import struct
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ccp_jax import buffer as replay
 from ccp_jax.buffer import ReplayBuffer, Transition
@@ -99,12 +101,45 @@ def make_train(config: Config, env: Env) -> Trainer:
     return Trainer(init=init, train_step=train_step)
 
 
-def make_grid_train(config: Config, env: Env) -> Trainer:
-    """`init(seeds int32[G])` and `train_step(states, etas float32[G, N])` over the grid axis, jitted.
+class GridTrainer:
+    """A `Trainer` vmapped over the grid axis, jitted, and sharded over devices.
 
-    The state is donated to `train_step`, so buffers are updated in place.
+    The grid axis (seeds × ratios) is split across `devices` with a 1-D mesh;
+    a grid that does not divide evenly is padded with copies of its last
+    member, whose results are dropped. `train_step` donates the state, so the
+    replay buffers are updated in place.
     """
-    trainer = make_train(config, env)
-    return Trainer(init=jax.jit(jax.vmap(trainer.init)),
-                   train_step=jax.jit(jax.vmap(trainer.train_step), donate_argnums=0))
 
+    def __init__(self, config: Config, env: Env, devices: Sequence[jax.Device] | None = None):
+        trainer = make_train(config, env)
+        self.devices = list(devices or jax.devices())
+        self.grid_size = config.grid_size
+        self.padded_size = -(-self.grid_size // len(self.devices)) * len(self.devices)
+        self.sharding = NamedSharding(Mesh(np.array(self.devices), ("grid",)), PartitionSpec("grid"))
+        self._init = jax.jit(jax.vmap(trainer.init), in_shardings=self.sharding, out_shardings=self.sharding)
+        self._step = jax.jit(jax.vmap(trainer.train_step), in_shardings=(self.sharding, self.sharding),
+                             out_shardings=(self.sharding, self.sharding), donate_argnums=0)
+
+    def _pad(self, x) -> jax.Array:
+        x = jnp.asarray(x)
+        extra = jnp.repeat(x[-1:], self.padded_size - self.grid_size, axis=0)
+        return jax.device_put(jnp.concatenate([x, extra]), self.sharding)
+
+    def init(self, seeds) -> TrainState:
+        """States for seeds int[G] (padded to the device count: leaves [G_padded, ...])."""
+        return self._init(self._pad(seeds))
+
+    def abstract_state(self, seeds) -> TrainState:
+        """Shapes, dtypes and shardings of `init(seeds)`, without computing it (for restoring)."""
+        shapes = jax.eval_shape(self._init, self._pad(seeds))
+        return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=self.sharding), shapes)
+
+    def train_step(self, state: TrainState, eta) -> tuple[TrainState, EpochMetrics]:
+        """One epoch of every member: eta float32[G, N]. Metrics keep only the real members."""
+        state, metrics = self._step(state, self._pad(eta))
+        return state, jax.tree.map(lambda x: x[: self.grid_size], metrics)
+
+
+def make_grid_train(config: Config, env: Env, devices: Sequence[jax.Device] | None = None) -> GridTrainer:
+    """The whole grid of `config` as one compiled program, sharded over `devices` (default: all)."""
+    return GridTrainer(config, env, devices)

