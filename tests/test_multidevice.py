@@ -1,0 +1,38 @@
+"""The grid axis sharded over 4 (simulated CPU) devices gives the single-device results."""
+import os
+import subprocess
+import sys
+import textwrap
+
+SCRIPT = textwrap.dedent("""
+    import jax, numpy as np
+    from ccp_jax.config import make_config
+    from ccp_jax.envs import make_env
+    from ccp_jax.trainer import make_grid_train
+    assert jax.device_count() == 4, jax.devices()
+    config = make_config("tiny", etas=((0.1,), (0.9,), (0.5,)), seeds=(0, 1))  # 6 members: padded to 8
+    eta, seed = config.grid_arrays()
+    results = []
+    for devices in (jax.devices()[:1], jax.devices()):
+        trainer = make_grid_train(config, make_env(config), devices)
+        state = trainer.init(seed)
+        assert state.env_steps.shape == (trainer.padded_size,)
+        for _ in range(2):
+            state, metrics = trainer.train_step(state, eta)
+        assert metrics.env_steps.shape == (6,)
+        if len(devices) == 4:
+            assert len(state.agents.log_alpha.sharding.device_set) == 4
+        results.append(jax.device_get((state.agents, metrics.train.q_loss)))
+    for a, b in zip(jax.tree.leaves(results[0][0]), jax.tree.leaves(results[1][0])):
+        np.testing.assert_allclose(a[:6], b[:6], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(results[0][1], results[1][1], rtol=1e-5)
+    print("EQUAL")
+""")
+
+
+def test_four_devices_equal_one():
+    env = dict(os.environ, XLA_FLAGS=os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4",
+               JAX_PLATFORMS="cpu")
+    result = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "EQUAL" in result.stdout
