@@ -32,13 +32,20 @@ def manager(run_dir: Path, max_to_keep: int = 2) -> ocp.CheckpointManager:
 
 
 def save(mngr: ocp.CheckpointManager, epoch: int, state: Any) -> None:
-    """Saves `state` as step `epoch` and waits until it is complete on disk."""
-    mngr.save(epoch, args=ocp.args.StandardSave(state))
+    """Saves `state` as step `epoch` and waits until it is complete on disk.
+
+    The actors' parameters are also saved as a small item of their own, so a
+    policy can be loaded without reading the replay buffers.
+    """
+    mngr.save(epoch, args=ocp.args.Composite(state=ocp.args.StandardSave(state),
+                                             policy=ocp.args.StandardSave(state.agents.actor)))
     mngr.wait_until_finished()
 
 
-def restore(mngr: ocp.CheckpointManager, abstract_state: Any) -> tuple[int, Any]:
-    """The latest complete checkpoint, restored into the structure (and shardings) of `abstract_state`.
+def restore(mngr: ocp.CheckpointManager, abstract_state: Any, item: str = "state",
+            epoch: int | None = None) -> tuple[int, Any]:
+    """A complete checkpoint (default: the latest), restored into the structure and shardings
+    of `abstract_state`. `item` is "state" (everything) or "policy" (the actors' parameters).
 
     Raises `CheckpointError` naming the folder when there is none, when it is
     unreadable, or when its arrays do not match the config's shapes.
@@ -47,9 +54,12 @@ def restore(mngr: ocp.CheckpointManager, abstract_state: Any) -> tuple[int, Any]
     folder = Path(mngr.directory)
     if not steps:
         raise CheckpointError(f"no complete checkpoint in {folder}")
-    epoch = max(steps)
+    if epoch is None:
+        epoch = max(steps)
+    elif epoch not in steps:
+        raise CheckpointError(f"no checkpoint of epoch {epoch} in {folder}; there are {sorted(steps)}")
     try:
-        state = mngr.restore(epoch, args=ocp.args.StandardRestore(abstract_state))
+        state = mngr.restore(epoch, args=ocp.args.Composite(**{item: ocp.args.StandardRestore(abstract_state)}))[item]
     except Exception as err:  # orbax raises many types for damaged files
         earlier = sorted(s for s in steps if s != epoch)
         hint = (f"; earlier checkpoints {earlier} are untouched: move {folder / str(epoch)} away to resume from one"

@@ -20,7 +20,7 @@ from ccp_jax import buffer as replay
 from ccp_jax.buffer import ReplayBuffer, Transition
 from ccp_jax.collect import EvalMetrics, make_collect, make_evaluate
 from ccp_jax.config import Config
-from ccp_jax.learner import AgentState, UpdateMetrics, init_agents, make_networks, make_update
+from ccp_jax.learner import AgentState, Networks, UpdateMetrics, init_agents, make_networks, make_update
 
 
 class TrainState(struct.PyTreeNode):
@@ -46,6 +46,7 @@ class EpochMetrics(NamedTuple):
 
 
 class Trainer(NamedTuple):
+    networks: Networks
     init: Callable[[jax.Array], TrainState]  # seed int32[] -> TrainState
     train_step: Callable[[TrainState, jax.Array], tuple[TrainState, EpochMetrics]]  # (state, eta[N])
 
@@ -98,7 +99,7 @@ def make_train(config: Config, env: Env) -> Trainer:
                                env_steps=env_steps, epoch=state.epoch + 1)
         return new_state, metrics
 
-    return Trainer(init=init, train_step=train_step)
+    return Trainer(networks=nets, init=init, train_step=train_step)
 
 
 class GridTrainer:
@@ -112,6 +113,7 @@ class GridTrainer:
 
     def __init__(self, config: Config, env: Env, devices: Sequence[jax.Device] | None = None):
         trainer = make_train(config, env)
+        self.networks = trainer.networks
         self.devices = list(devices or jax.devices())
         self.grid_size = config.grid_size
         self.padded_size = -(-self.grid_size // len(self.devices)) * len(self.devices)

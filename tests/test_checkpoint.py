@@ -93,3 +93,21 @@ def test_corrupt_checkpoint_gives_a_clear_error(tmp_path, uninterrupted):
     assert (out / "metrics.jsonl").read_bytes() == before
     with pytest.raises(ConfigError, match="^resume:"):
         main(["--resume", str(tmp_path / "nothing"), "--no-progress"])
+
+
+def test_load_policy_acts_like_the_trained_actor(uninterrupted):
+    from ccp_jax import load_policy
+    from ccp_jax.collect import policy_mean_and_log_std
+    from ccp_jax.networks import deterministic_action
+
+    _, state = _final_state(uninterrupted)
+    policy = load_policy(uninterrupted, member=1)
+    obs = np.random.default_rng(0).normal(size=(5, 24)).astype(np.float32)
+    stage = np.array([0, 1, 0, 1, 1], np.int32)
+    actor = make_grid_train(CONFIG, make_env(CONFIG)).networks.actor
+    params = jax.tree.map(lambda x: x[1], state.agents.actor)
+    mean, _ = policy_mean_and_log_std(actor, params, obs, stage)
+    np.testing.assert_allclose(policy(obs, stage), deterministic_action(mean), rtol=1e-6)
+    assert policy(obs[0], stage[0]).shape == (2,)
+    with pytest.raises(ValueError, match="^member:"):
+        load_policy(uninterrupted, member=2)

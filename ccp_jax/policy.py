@@ -1,0 +1,47 @@
+"""Trained policies for use outside training."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+
+from ccp_jax import checkpoint
+from ccp_jax.collect import agent_of, policy_mean_and_log_std
+from ccp_jax.config import Config
+from ccp_jax.envs import make_env
+from ccp_jax.networks import deterministic_action
+from ccp_jax.trainer import make_grid_train
+
+
+def load_policy(run_dir: str | Path, member: int = 0, epoch: int | None = None) -> Callable:
+    """The deterministic policy of grid member `member` from a run folder's checkpoint.
+
+    Returns a jitted `policy(obs, stage) -> action`: obs float32[..., obs_size],
+    stage int32[...] (the env's `state.info["stage"]`); the acting agent is the
+    stage's own (or the single agent of end-to-end SAC). Uses the latest
+    checkpoint unless `epoch` is given.
+    """
+    run_dir = Path(run_dir)
+    config = Config.from_dict(json.loads((run_dir / "config.json").read_text()))
+    if not 0 <= member < config.grid_size:
+        raise ValueError(f"member: the run has members 0..{config.grid_size - 1}, got {member}")
+    env = make_env(config)
+    trainer = make_grid_train(config, env, jax.devices()[:1])
+    abstract = trainer.abstract_state(config.grid_arrays()[1]).agents.actor
+    mngr = checkpoint.manager(run_dir)
+    _, actors = checkpoint.restore(mngr, abstract, item="policy", epoch=epoch)
+    mngr.close()
+    params = jax.tree.map(lambda x: x[member], actors)
+    actor = trainer.networks.actor
+
+    @jax.jit
+    def policy(obs: jax.Array, stage: jax.Array) -> jax.Array:
+        batch_shape = stage.shape
+        obs2, stage1 = obs.reshape(-1, obs.shape[-1]), stage.reshape(-1).astype(jnp.int32)
+        mean, _ = policy_mean_and_log_std(actor, params, obs2, agent_of(config, stage1))
+        return deterministic_action(mean).reshape(batch_shape + (-1,))
+
+    return policy
