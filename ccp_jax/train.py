@@ -63,12 +63,17 @@ class Args:
     eval_episodes: Optional[int] = None
     max_episode_steps: Optional[int] = None
     gamma: Optional[float] = None
+    absorbing_stages: Optional[bool] = None
+    """Critic n bootstraps the exact value 1/(1 − γ) once stage n is done (default on; off = the paper's literal rule)."""
+    absorbing_success: Optional[bool] = None
+    """Success bootstraps the absorbing value of all-ones rewards (default on; off = success ends with value 0)."""
     progress: bool = True
     """Show a progress bar."""
 
 
 OVERRIDES = ("total_steps", "num_envs", "hidden", "batch_size", "buffer_size", "steps_per_epoch",
-             "train_loops_per_epoch", "eval_episodes", "max_episode_steps", "gamma")
+             "train_loops_per_epoch", "eval_episodes", "max_episode_steps", "gamma", "absorbing_stages",
+             "absorbing_success")
 
 
 def parse_eta_vector(text: str) -> tuple[float, ...]:

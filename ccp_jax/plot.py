@@ -1,0 +1,190 @@
+"""Figures from run folders (SPEC §6): learning curves over seeds and ratio-sweep heatmaps.
+
+    python -m ccp_jax.plot RUN_DIR [RUN_DIR ...] [--out FILE.png] [--metric success_rate]
+
+Figures are built on `matplotlib.figure.Figure` with the Agg canvas, never through
+pyplot, so plotting is headless and leaves matplotlib's global backend alone.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from collections import defaultdict
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+from ccp_jax import outputs
+
+Group = tuple[str, str, tuple[float, ...]]  # (task, algo, eta vector)
+
+
+def new_figure(width: float = 6.4, height: float = 4.0) -> Figure:
+    """A figure on the Agg canvas (inches)."""
+    fig = Figure(figsize=(width, height), dpi=120, layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _task(config: dict) -> str:
+    return f"{config['env']}-{config['num_stages']}" if config["env"] == "maze" else config["env"]
+
+
+def _value(row: dict, metric: str) -> Optional[float]:
+    """The row's `metric`; 'name/k' picks agent k of a per-agent list. None when undefined (η* of the last agent)."""
+    name, _, agent = metric.partition("/")
+    if name not in row:
+        raise KeyError(f"metric {name!r} is not in metrics.jsonl; it has {sorted(row)}")
+    value = row[name]
+    if isinstance(value, list):
+        if not agent:
+            raise KeyError(f"metric {name!r} is per agent; write {name}/K for agent K (0..{len(value) - 1})")
+        value = value[int(agent)]
+    return None if value is None else float(value)
+
+
+def load_curves(run_dirs: Sequence[str | Path], metric: str = "success_rate") -> dict[Group, list[tuple[np.ndarray, np.ndarray]]]:
+    """Per (task, algo, eta vector): one (env_steps int64[E], values float64[E]) series per grid member.
+
+    Members of the same group from several run folders are pooled (e.g. seeds trained in
+    separate runs). Rows where the metric is undefined are dropped.
+    """
+    groups: dict[Group, list[tuple[np.ndarray, np.ndarray]]] = defaultdict(list)
+    for run_dir in map(Path, run_dirs):
+        config = json.loads((run_dir / "config.json").read_text())
+        members: dict[int, list[dict]] = defaultdict(list)
+        for row in outputs.read_rows(run_dir / "metrics.jsonl"):
+            members[row["member"]].append(row)
+        for rows in members.values():
+            rows.sort(key=lambda r: r["epoch"])
+            points = [(r["env_steps"], v) for r in rows if (v := _value(r, metric)) is not None]
+            steps = np.asarray([s for s, _ in points], np.int64)
+            values = np.asarray([v for _, v in points], np.float64)
+            groups[(_task(config), rows[0]["algo"], tuple(rows[0]["eta"]))].append((steps, values))
+    return dict(groups)
+
+
+def group_label(group: Group, show_task: bool = False) -> str:
+    """'csac η=0.1' (cooperative agents' ratios; the last agent's is always 1), or the algo alone."""
+    task, algo, eta = group
+    label = algo
+    if algo == "csac":
+        coop = eta[:-1] or eta
+        label += " η=" + ",".join(f"{x:g}" for x in coop)
+    return f"{task} {label}" if show_task else label
+
+
+def mean_std(series: Sequence[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(steps[S], mean[S], std[S], count[S]) over members at every env-step value any member logged.
+
+    Members with shorter runs simply stop contributing, so the tail may average fewer seeds.
+    """
+    by_step: dict[int, list[float]] = defaultdict(list)
+    for steps, values in series:
+        for s, v in zip(steps.tolist(), values.tolist()):
+            by_step[s].append(v)
+    steps = np.asarray(sorted(by_step), dtype=np.int64)
+    vals = [np.asarray(by_step[s]) for s in steps.tolist()]
+    return (steps, np.asarray([v.mean() for v in vals]), np.asarray([v.std() for v in vals]),
+            np.asarray([len(v) for v in vals]))
+
+
+def curves(groups: dict[Group, list[tuple[np.ndarray, np.ndarray]]], metric: str = "success_rate",
+           ax: Optional[Axes] = None, title: Optional[str] = None) -> Figure:
+    """Mean ± std over members of each group vs env steps, one line per group (from `load_curves`).
+
+    Draws into `ax` if given (e.g. a subplot of an experiments figure), else a new figure.
+    Returns the figure drawn into.
+    """
+    if ax is None:
+        ax = new_figure().add_subplot()
+    show_task = len({g[0] for g in groups}) > 1
+    for group in sorted(groups):
+        steps, mean, std, count = mean_std(groups[group])
+        line, = ax.plot(steps, mean, label=f"{group_label(group, show_task)} (n={count.max(initial=0)})")
+        ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2, linewidth=0)
+    ax.set_xlabel("environment steps")
+    ax.set_ylabel(metric.replace("_", " "))
+    if metric == "success_rate":
+        ax.set_ylim(-0.02, 1.02)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize="small")
+    if title:
+        ax.set_title(title)
+    return ax.figure
+
+
+def ratio_grid(run_dirs: Sequence[str | Path], key: str = "final_success") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(eta1[A], eta2[B], values[A, B]) from summary.json: `key` averaged over seeds per (η1, η2).
+
+    For the independent-ratio sweep of a 3-stage task (eta vectors (η1, η2, 1));
+    cells no run trained are NaN.
+    """
+    cells: dict[tuple[float, float], list[float]] = defaultdict(list)
+    for run_dir in map(Path, run_dirs):
+        for m in json.loads((Path(run_dir) / "summary.json").read_text())["members"]:
+            if len(m["eta"]) < 3:
+                raise ValueError(f"{run_dir}: eta {m['eta']} has no independent (η1, η2) pair")
+            cells[(m["eta"][0], m["eta"][1])].append(m[key])
+    eta1, eta2 = sorted({a for a, _ in cells}), sorted({b for _, b in cells})
+    values = np.full((len(eta1), len(eta2)), np.nan)
+    for (a, b), v in cells.items():
+        values[eta1.index(a), eta2.index(b)] = np.mean(v)
+    return np.asarray(eta1), np.asarray(eta2), values
+
+
+def heatmap(values: np.ndarray, eta1: Sequence[float], eta2: Sequence[float], ax: Optional[Axes] = None,
+            label: str = "final success", title: Optional[str] = None, vmin: float = 0.0,
+            vmax: float = 1.0) -> Figure:
+    """values[i, j] at (η1 = eta1[i], η2 = eta2[j]) as annotated cells; η1 on the y axis, η2 on x.
+
+    NaN cells (not trained) stay blank. Returns the figure drawn into.
+    """
+    values = np.asarray(values, dtype=float)
+    if values.shape != (len(eta1), len(eta2)):
+        raise ValueError(f"values has shape {values.shape}, expected ({len(eta1)}, {len(eta2)})")
+    if ax is None:
+        ax = new_figure(1.2 + 0.7 * len(eta2), 1.0 + 0.6 * len(eta1)).add_subplot()
+    image = ax.imshow(values, origin="lower", cmap="viridis", vmin=vmin, vmax=vmax, aspect="auto")
+    ax.set_xticks(range(len(eta2)), [f"{x:g}" for x in eta2])
+    ax.set_yticks(range(len(eta1)), [f"{x:g}" for x in eta1])
+    ax.set_xlabel("η2")
+    ax.set_ylabel("η1")
+    for i, j in zip(*np.nonzero(np.isfinite(values))):
+        # Dark text on the bright end of viridis, light text elsewhere.
+        bright = (values[i, j] - vmin) / (vmax - vmin) > 0.6
+        ax.text(j, i, f"{values[i, j]:.2f}", ha="center", va="center", fontsize="small",
+                color="black" if bright else "white")
+    ax.figure.colorbar(image, ax=ax, label=label)
+    if title:
+        ax.set_title(title)
+    return ax.figure
+
+
+def main(argv: Optional[Sequence[str]] = None) -> Path:
+    parser = argparse.ArgumentParser(prog="python -m ccp_jax.plot", description=(
+        "Curves of a metric vs env steps from run folders: mean ± std over seeds, one line per (algo, eta vector)."))
+    parser.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR")
+    parser.add_argument("--metric", default="success_rate",
+                        help="a metrics.jsonl field; NAME/K for agent K of a per-agent field (e.g. q_loss/0)")
+    parser.add_argument("--out", type=Path, help="PNG to write (default RUN_DIR/success.png for success_rate, "
+                                                  "else RUN_DIR/<metric>.png, in the first RUN_DIR)")
+    parser.add_argument("--title")
+    args = parser.parse_args(argv)
+    name = "success" if args.metric == "success_rate" else args.metric.replace("/", "_agent")
+    out = args.out or args.run_dirs[0] / f"{name}.png"
+    try:
+        groups = load_curves(args.run_dirs, args.metric)
+    except (FileNotFoundError, KeyError) as err:
+        parser.exit(2, f"error: {err}\n")
+    curves(groups, args.metric, title=args.title).savefig(out)
+    print(f"wrote {out}")
+    return out
+
+
+if __name__ == "__main__":
+    main()
