@@ -15,6 +15,9 @@ import numpy as np
 ALGOS = ("csac", "naive", "sac")
 Algo = Literal["csac", "naive", "sac"]
 PresetName = Literal["paper", "small", "tiny"]
+Normaliser = Literal["batch", "ema", "floor"]
+NORMALISERS = ("batch", "ema", "floor")
+AUTO = "auto"  # a ratio estimated during training (η*), see `Config.eta_auto_range`
 
 
 class ConfigError(ValueError):
@@ -34,7 +37,8 @@ class Config:
     rooms: int = 2
     algo: Algo = "csac"
     # Grid: every ratio vector is trained with every seed, in one vmapped program.
-    etas: tuple[tuple[float, ...], ...] = ((0.1,),)
+    # A ratio is a number in [0, 1] or "auto" (η* from running critic ranges).
+    etas: tuple[tuple[float | str, ...], ...] = ((0.1,),)
     seeds: tuple[int, ...] = (0,)
     # Budget.
     total_steps: int = 3_000_000
@@ -60,6 +64,12 @@ class Config:
     absorbing_stages: bool = True
     normalise_last: bool = False
     norm_eps: float = 1e-6
+    # How Q̂ is scaled: "batch" (the paper: batch min/max), "ema" (running min/max),
+    # "floor" (batch min, range at least `norm_floor`, in reward units).
+    normaliser: Normaliser = "batch"
+    norm_ema_rate: float = 0.005
+    norm_floor: float = 1.0
+    eta_auto_range: tuple[float, float] = (0.05, 0.95)
 
     def __post_init__(self) -> None:
         self._validate()
@@ -95,13 +105,13 @@ class Config:
     def grid_size(self) -> int:
         return len(self.etas) * len(self.seeds)
 
-    def eta_vector(self, eta: Sequence[float]) -> tuple[float, ...]:
+    def eta_vector(self, eta: Sequence[float | str]) -> tuple[float | str, ...]:
         """Per-agent ratios of length `num_agents`.
 
         A single value is shared by the cooperative agents; N−1 values give one
         per cooperative agent. The last agent gets η = 1 (it has no next critic).
         """
-        eta = tuple(float(x) for x in eta)
+        eta = tuple(x if x == AUTO else float(x) for x in eta)
         n = self.num_agents
         if len(eta) == 1:
             eta = eta * max(n - 1, 1)
@@ -110,9 +120,10 @@ class Config:
         return eta[:n]
 
     def grid_arrays(self) -> tuple[np.ndarray, np.ndarray]:
-        """(eta float32[G, num_agents], seed int32[G]) for the vmapped grid axis."""
+        """(eta float32[G, num_agents], seed int32[G]) for the vmapped grid axis; "auto" is NaN."""
         members = self.grid
-        eta = np.asarray([m[0] for m in members], np.float32).reshape(len(members), self.num_agents)
+        eta = np.asarray([[np.nan if x == AUTO else x for x in m[0]] for m in members], np.float32)
+        eta = eta.reshape(len(members), self.num_agents)
         seed = np.asarray([m[1] for m in members], np.int32)
         return eta, seed
 
@@ -177,8 +188,17 @@ class Config:
                 raise ConfigError("eta_per_agent", f"ratio vector {tuple(eta)} has {len(eta)} values; "
                                   f"{n} agents need {allowed}")
             for x in eta:
-                if not (0.0 <= float(x) <= 1.0):
-                    raise ConfigError("eta", f"ratios must lie in [0, 1], got {x}")
+                if x != AUTO and not (isinstance(x, (int, float)) and 0.0 <= float(x) <= 1.0):
+                    raise ConfigError("eta", f"ratios must be numbers in [0, 1] or {AUTO!r}, got {x!r}")
+        if self.normaliser not in NORMALISERS:
+            raise ConfigError("normaliser", f"unknown normaliser {self.normaliser!r}; choose one of {NORMALISERS}")
+        if not 0.0 < self.norm_ema_rate <= 1.0:
+            raise ConfigError("norm_ema_rate", f"must be in (0, 1], got {self.norm_ema_rate}")
+        if self.norm_floor <= 0:
+            raise ConfigError("norm_floor", f"must be positive, got {self.norm_floor}")
+        lo, hi = self.eta_auto_range
+        if not 0.0 <= lo <= hi <= 1.0:
+            raise ConfigError("eta_auto_range", f"must satisfy 0 <= low <= high <= 1, got {self.eta_auto_range}")
 
 
 PRESETS: dict[str, dict] = {

@@ -9,7 +9,7 @@ wire up without any Python loop over agents.
 """
 from __future__ import annotations
 
-from typing import Any, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -24,9 +24,21 @@ from ccp_jax.networks import Actor, TwinCritic, sample_action
 Params = Any
 
 
+class NormState(struct.PyTreeNode):
+    """Running (EMA) bounds of each agent's critics on its own batches, [N, 2]: [:, 0] own, [:, 1] next.
+
+    They start at a channel's possible value range [0, 1/(1 − γ)] (rewards lie
+    in [0, 1]), so a critic that is still flat is not blown up to full scale.
+    """
+
+    lo: jax.Array
+    hi: jax.Array
+
+
 class AgentState(struct.PyTreeNode):
     """Every agent's learnable state; each leaf has a leading agent axis [N, ...]."""
 
+    norm: NormState
     actor: Params
     critic: Params
     target_critic: Params
@@ -54,8 +66,12 @@ def make_networks(config: Config, action_size: int) -> Networks:
     )
 
 
-def init_agents(nets: Networks, key: jax.Array, num_agents: int, obs_size: int, action_size: int) -> AgentState:
-    """Independently initialised agents, stacked; targets start equal to the critics."""
+def init_agents(nets: Networks, key: jax.Array, num_agents: int, obs_size: int, action_size: int,
+                value_range: float = 1.0) -> AgentState:
+    """Independently initialised agents, stacked; targets start equal to the critics.
+
+    `value_range` is the largest value a critic can take (1/(1 − γ) for rewards in [0, 1]).
+    """
     obs, act = jnp.zeros((1, obs_size)), jnp.zeros((1, action_size))
 
     def one(k):
@@ -63,7 +79,8 @@ def init_agents(nets: Networks, key: jax.Array, num_agents: int, obs_size: int, 
         actor = nets.actor.init(k_actor, obs)
         critic = nets.critic.init(k_critic, obs, act)
         log_alpha = jnp.zeros((), jnp.float32)
-        return AgentState(actor=actor, critic=critic, target_critic=critic, log_alpha=log_alpha,
+        norm = NormState(lo=jnp.zeros((2,)), hi=jnp.full((2,), value_range))
+        return AgentState(norm=norm, actor=actor, critic=critic, target_critic=critic, log_alpha=log_alpha,
                           actor_opt=nets.actor_tx.init(actor), critic_opt=nets.critic_tx.init(critic),
                           alpha_opt=nets.alpha_tx.init(log_alpha))
 
@@ -83,15 +100,23 @@ class UpdateMetrics(NamedTuple):
     log_prob: jax.Array
     q_min: jax.Array
     q_max: jax.Array
-    eta_star: jax.Array
+    eta_star: jax.Array  # from this batch's ranges
+    eta_used: jax.Array  # the ratio the actor loss used (η, or the running η* for "auto")
+    range_own: jax.Array  # Ran(Q_n) the normaliser divided by
+    range_next: jax.Array  # Ran(Q_{n+1}) the normaliser divided by
     updated: jax.Array
 
 
-def make_update(config: Config, nets: Networks, action_size: int):
-    """Returns `update(agents, batch, eta, ready, key) -> (agents, UpdateMetrics)`.
+class Learner(NamedTuple):
+    update: Callable  # (agents, batch, eta, ready, key) -> (agents, UpdateMetrics)
+    action_pulls: Callable  # (agents, batch, eta, key) -> (float32[N], float32[N])
+
+
+def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
+    """Returns `Learner.update(agents, batch, eta, ready, key) -> (agents, UpdateMetrics)`.
 
     batch: `Transition` with leaves [N, B, ...] (agent n's batch from B_n);
-    eta: float32[N]; ready: bool[N] (agents whose buffer can fill a batch).
+    eta: float32[N] (NaN: "auto"); ready: bool[N] (agents whose buffer can fill a batch).
     """
     n_agents = config.num_agents
     cooperative = config.algo == "csac" and n_agents > 1
@@ -119,7 +144,41 @@ def make_update(config: Config, nets: Networks, action_size: int):
         """Each slot's reward channel: [slots, B, R] -> [slots, B]."""
         return jnp.take_along_axis(x, slot_ids[:, None, None], axis=2)[..., 0]
 
-    def total_loss(trainable, target_critic, batch: Transition, eta, ready, keys):
+    has_next = jnp.arange(n_agents) < n_agents - 1
+    coop_actor = (has_next & cooperative) | ((agent_ids == n_agents - 1) & config.normalise_last)
+
+    def pair(q_slots: jax.Array) -> jax.Array:
+        """Own and next critic values per agent, [slots, B] -> [N, 2, B]; without a next critic, own twice."""
+        q_own = q_slots[:n_agents]
+        q_next = jnp.concatenate([q_slots[n_agents:], q_own[-1:]]) if cooperative else q_own
+        return jnp.stack([q_own, q_next], axis=1)
+
+    def normalised(q_pair, eta, norm: NormState, ready):
+        """Q̂ of own and next critics [N, 2, B] under `config.normaliser`, the ratios used, new running bounds."""
+        bounds = jax.lax.stop_gradient(q_pair)
+        b_lo, b_hi = bounds.min(-1), bounds.max(-1)  # [N, 2]
+        e_lo = norm.lo + config.norm_ema_rate * (b_lo - norm.lo)
+        e_hi = norm.hi + config.norm_ema_rate * (b_hi - norm.hi)
+        if config.normaliser == "ema":
+            lo, scale = e_lo, e_hi - e_lo
+        elif config.normaliser == "floor":
+            lo, scale = b_lo, jnp.maximum(b_hi - b_lo, config.norm_floor)
+        else:
+            lo, scale = b_lo, b_hi - b_lo
+        q_hat = losses.normalise(q_pair, config.norm_eps, lo[..., None], scale[..., None])
+        # "auto" (NaN) members use η* from the running ranges, clipped; others their own η.
+        auto = jnp.clip(losses.eta_star(e_hi[:, 0] - e_lo[:, 0], e_hi[:, 1] - e_lo[:, 1], config.norm_eps),
+                        *config.eta_auto_range)
+        eta_used = jnp.where(has_next & cooperative, jnp.where(jnp.isnan(eta), auto, eta), 1.0)
+        keep = ready[:, None]
+        new = NormState(lo=jnp.where(keep, e_lo, norm.lo), hi=jnp.where(keep, e_hi, norm.hi))
+        eta_star = jnp.where(has_next, losses.eta_star(b_hi[:, 0] - b_lo[:, 0], b_hi[:, 1] - b_lo[:, 1],
+                                                        config.norm_eps), 1.0)
+        diag = dict(eta_star=eta_star, eta_used=eta_used, range_own=scale[:, 0],
+                    range_next=jnp.where(has_next, scale[:, 1], 0.0))
+        return q_hat, eta_used, new, diag
+
+    def total_loss(trainable, target_critic, norm_state, batch: Transition, eta, ready, keys):
         actor, critic, log_alpha = trainable
         alpha = jnp.exp(jax.lax.stop_gradient(log_alpha))  # [N]
         k_next, k_pi = keys[:, 0], keys[:, 1]
@@ -137,31 +196,29 @@ def make_update(config: Config, nets: Networks, action_size: int):
         # Actor: reparameterised a ~ π_n(s), critics held fixed.
         mean, log_std = actor_apply(actor, batch.obs)
         act, logp = jax.vmap(sample_action)(mean, log_std, k_pi)
-        q_pi_slots = critic_min(slot_params(jax.lax.stop_gradient(critic)), slot_data(batch.obs), slot_data(act))
-        q_pi, q_pi_next = q_pi_slots[:n_agents], q_pi_slots[n_agents:]  # [N, B], [N − 1, B]
+        frozen = slot_params(jax.lax.stop_gradient(critic))
+        q_pi_slots = critic_min(frozen, slot_data(batch.obs), slot_data(act))
+        q_pi = q_pi_slots[:n_agents]  # [N, B]
         pi_loss = jax.vmap(losses.sac_actor_loss)(logp, q_pi, alpha)
-        coop_loss = jax.vmap(losses.coop_actor_loss, in_axes=(0, 0, 0, 0, 0, None))
-        eta_star = jnp.ones((n_agents,))
-        if cooperative:
-            lead = slice(0, n_agents - 1)
-            pi_loss = pi_loss.at[lead].set(coop_loss(logp[lead], q_pi[lead], q_pi_next, eta[lead], alpha[lead],
-                                                     config.norm_eps))
-            eta_star = eta_star.at[lead].set(jax.vmap(losses.eta_star, in_axes=(0, 0, None))(
-                q_pi[lead], q_pi_next, config.norm_eps))
-        if config.normalise_last:  # η_N = 1 on the normalised own critic
-            last = slice(n_agents - 1, n_agents)
-            pi_loss = pi_loss.at[last].set(coop_loss(logp[last], q_pi[last], q_pi[last], jnp.ones((1,)),
-                                                     alpha[last], config.norm_eps))
+        norm, diag = norm_state, {}
+        if cooperative or config.normalise_last:
+            # Own and next critic per agent, [N, 2, B]; an agent without a next critic repeats its own.
+            q_hat, eta_used, norm, diag = normalised(pair(q_pi_slots), eta, norm_state, ready)
+            coop = jax.vmap(losses.coop_actor_loss)(logp, q_hat[:, 0], q_hat[:, 1], eta_used, alpha)
+            pi_loss = jnp.where(coop_actor, coop, pi_loss)
         a_loss = jax.vmap(losses.alpha_loss, in_axes=(0, 0, None))(log_alpha, logp, target_entropy)
 
         mask = ready.astype(jnp.float32)
         # Critic j's cross term comes from agent j − 1's batch, so it is masked by that agent's readiness.
         total = jnp.sum(mask * (q_own_loss + pi_loss + a_loss)) + jnp.sum(slot_data(mask)[n_agents:] * q_next_loss)
         q_loss = q_own_loss.at[: n_agents - 1].add(q_next_loss) if cooperative else q_own_loss
+        ones, zeros = jnp.ones((n_agents,)), jnp.zeros((n_agents,))
         metrics = UpdateMetrics(q_loss=q_loss, pi_loss=pi_loss, alpha=alpha, log_prob=jnp.mean(logp, -1),
-                                q_min=jnp.min(q_pi, -1), q_max=jnp.max(q_pi, -1), eta_star=eta_star,
+                                q_min=jnp.min(q_pi, -1), q_max=jnp.max(q_pi, -1),
+                                eta_star=diag.get("eta_star", ones), eta_used=diag.get("eta_used", ones),
+                                range_own=diag.get("range_own", zeros), range_next=diag.get("range_next", zeros),
                                 updated=mask)
-        return total, metrics
+        return total, (metrics, norm)
 
     def step_opt(tx, params, grads, opt_state, mask):
         updates, new_opt = tx.update(grads, opt_state, params)
@@ -172,7 +229,8 @@ def make_update(config: Config, nets: Networks, action_size: int):
     def update(agents: AgentState, batch: Transition, eta: jax.Array, ready: jax.Array, key: jax.Array):
         keys = jax.random.split(key, (n_agents, 2))
         trainable = (agents.actor, agents.critic, agents.log_alpha)
-        grads, metrics = jax.grad(total_loss, has_aux=True)(trainable, agents.target_critic, batch, eta, ready, keys)
+        grads, (metrics, norm) = jax.grad(total_loss, has_aux=True)(trainable, agents.target_critic, agents.norm,
+                                                                   batch, eta, ready, keys)
         g_actor, g_critic, g_alpha = grads
         # A critic moves when its own buffer or (CSAC) the previous agent's buffer is ready.
         critic_ready = ready.at[1:].set(ready[1:] | ready[:-1]) if cooperative else ready
@@ -181,7 +239,32 @@ def make_update(config: Config, nets: Networks, action_size: int):
         critic, critic_opt = vstep(nets.critic_tx)(agents.critic, g_critic, agents.critic_opt, critic_ready)
         log_alpha, alpha_opt = vstep(nets.alpha_tx)(agents.log_alpha, g_alpha, agents.alpha_opt, ready)
         target = optax.incremental_update(critic, agents.target_critic, config.tau)
-        return AgentState(actor=actor, critic=critic, target_critic=target, log_alpha=log_alpha,
+        return AgentState(norm=norm, actor=actor, critic=critic, target_critic=target, log_alpha=log_alpha,
                           actor_opt=actor_opt, critic_opt=critic_opt, alpha_opt=alpha_opt), metrics
 
-    return update
+    def action_pulls(agents: AgentState, batch: Transition, eta: jax.Array, key: jax.Array):
+        """Each critic's pull on agent n's actions: mean ‖∂(η Q̂_n)/∂a‖ and ‖∂((1 − η) Q̂_{n+1})/∂a‖, float32[N] each.
+
+        A diagnostic of which critic drives the actor (computed once per epoch,
+        with the running bounds as they stand, without updating them).
+        """
+        if not (cooperative or config.normalise_last):
+            zeros = jnp.zeros((n_agents,))
+            return zeros, zeros
+        mean, log_std = actor_apply(agents.actor, batch.obs)
+        act, _ = jax.vmap(sample_action)(mean, log_std, jax.random.split(key, n_agents))
+        slots = slot_params(agents.critic)
+
+        def weighted(a):
+            q_hat, eta_used, _, _ = normalised(pair(critic_min(slots, slot_data(batch.obs), slot_data(a))), eta,
+                                               agents.norm, jnp.zeros((n_agents,), bool))
+            return eta_used[:, None] * q_hat[:, 0], jnp.where(has_next[:, None], 1 - eta_used[:, None], 0.0) * q_hat[:, 1]
+
+        pulls = []
+        for term in range(2):
+            # q_hat's bounds are constants, so this is the gradient the actor loss sees from that term.
+            g = jax.grad(lambda a: weighted(a)[term].sum())(act)
+            pulls.append(jnp.linalg.norm(g, axis=-1).mean(-1))
+        return pulls[0], pulls[1]
+
+    return Learner(update=update, action_pulls=action_pulls)

@@ -29,17 +29,23 @@ def twin_q_loss(q: jax.Array, target: jax.Array) -> jax.Array:
     return jnp.sum(jnp.mean((q - jax.lax.stop_gradient(target)) ** 2, axis=-1))
 
 
-def normalise(q: jax.Array, eps: float) -> jax.Array:
-    """Q̂ = (Q − min_b Q) / (max_b Q − min_b Q + ε) over the batch, bounds held constant."""
-    lo, hi = jax.lax.stop_gradient(jnp.min(q)), jax.lax.stop_gradient(jnp.max(q))
-    return (q - lo) / (hi - lo + eps)
+def normalise(q: jax.Array, eps: float, lo: jax.Array | None = None, scale: jax.Array | None = None) -> jax.Array:
+    """Q̂ = (Q − lo) / (scale + ε) with lo, scale held constant.
+
+    By default lo and scale are the batch's min and range, the paper's
+    normaliser: Q̂ = (Q − min_b Q) / (max_b Q − min_b Q + ε).
+    """
+    if lo is None:
+        lo = jnp.min(q)
+    if scale is None:
+        scale = jnp.max(q) - lo
+    return (q - jax.lax.stop_gradient(lo)) / (jax.lax.stop_gradient(scale) + eps)
 
 
-def coop_actor_loss(log_prob: jax.Array, q_own: jax.Array, q_next: jax.Array, eta: jax.Array,
-                    alpha: jax.Array, eps: float) -> jax.Array:
-    """CCP actor loss mean(α log π − [η Q̂_n + (1 − η) Q̂_{n+1}]); all inputs [B] but η, α."""
-    coop = eta * normalise(q_own, eps) + (1.0 - eta) * normalise(q_next, eps)
-    return jnp.mean(alpha * log_prob - coop)
+def coop_actor_loss(log_prob: jax.Array, q_hat_own: jax.Array, q_hat_next: jax.Array, eta: jax.Array,
+                    alpha: jax.Array) -> jax.Array:
+    """CCP actor loss mean(α log π − [η Q̂_n + (1 − η) Q̂_{n+1}]) on normalised critics; arrays [B]."""
+    return jnp.mean(alpha * log_prob - (eta * q_hat_own + (1.0 - eta) * q_hat_next))
 
 
 def sac_actor_loss(log_prob: jax.Array, q: jax.Array, alpha: jax.Array) -> jax.Array:
@@ -52,12 +58,7 @@ def alpha_loss(log_alpha: jax.Array, log_prob: jax.Array, target_entropy: float)
     return -jnp.mean(log_alpha * jax.lax.stop_gradient(log_prob + target_entropy))
 
 
-def q_range(q: jax.Array) -> jax.Array:
-    """Ran(Q) over the batch: max_b Q − min_b Q."""
-    return jnp.max(q) - jnp.min(q)
-
-
-def eta_star(q_own: jax.Array, q_next: jax.Array, eps: float) -> jax.Array:
+def eta_star(range_own: jax.Array, range_next: jax.Array, eps: float) -> jax.Array:
     """The ratio that recovers the sum Q_n + Q_{n+1}: Ran(Q_n) / (Ran(Q_n) + Ran(Q_{n+1}))."""
-    r_own, r_next = q_range(q_own), q_range(q_next)
-    return r_own / (r_own + r_next + eps)
+    return range_own / (range_own + range_next + eps)
+

@@ -51,6 +51,9 @@ def metric_rows(config: Config, epoch: int, metrics, wall_s: float) -> list[dict
             "log_prob": per_agent(t.log_prob), "q_min": per_agent(t.q_min), "q_max": per_agent(t.q_max),
             # η* needs a next critic; it is undefined (null) for the last agent.
             "eta_star": [float(v) if h else None for v, h in zip(t.eta_star[member], has_next)],
+            "eta_used": per_agent(t.eta_used), "range_own": per_agent(t.range_own),
+            "range_next": per_agent(t.range_next),
+            "pull_own": per_agent(metrics.pull_own), "pull_next": per_agent(metrics.pull_next),
             "updated": per_agent(t.updated),
             "buffer_fill": [int(v) / config.buffer_size for v in metrics.buffer_size[member]],
             "epoch_wall_s": wall_s,
@@ -102,7 +105,7 @@ def summary_table(summary: dict) -> str:
     lines = [f"{'member':>6}  {'algo':<5}  {'eta':<14}  {'seed':>4}  {'final success':>13}  "
              f"{'final return':>12}  {'first success at':>16}"]
     for m in summary["members"]:
-        eta = ",".join(f"{x:g}" for x in m["eta"])
+        eta = ",".join(x if isinstance(x, str) else f"{x:g}" for x in m["eta"])
         first = "-" if m["first_success_env_steps"] is None else f"{m['first_success_env_steps']:,}"
         lines.append(f"{m['member']:>6}  {m['algo']:<5}  {eta:<14}  {m['seed']:>4}  {m['final_success']:>13.2f}  "
                      f"{m['final_return']:>12.1f}  {first:>16}")

@@ -19,7 +19,7 @@ import tyro
 from tqdm.auto import tqdm
 
 from ccp_jax import checkpoint, outputs
-from ccp_jax.config import PRESETS, Config, ConfigError, PresetName, make_config
+from ccp_jax.config import AUTO, PRESETS, Config, ConfigError, Normaliser, PresetName, make_config
 from ccp_jax.envs import make_env
 from ccp_jax.trainer import make_grid_train
 
@@ -37,10 +37,10 @@ class Args:
     """Number of maze rooms (stages); default 2."""
     algo: Optional[Literal["csac", "naive", "sac"]] = None
     """csac (default): cooperative agents; naive: independent agents; sac: one end-to-end agent."""
-    eta: Optional[tuple[float, ...]] = None
-    """Grid of shared cooperative ratios in [0, 1] (default 0.1)."""
+    eta: Optional[tuple[str, ...]] = None
+    """Grid of shared cooperative ratios, each in [0, 1] or 'auto' (running η*); default 0.1."""
     eta_per_agent: Optional[tuple[str, ...]] = None
-    """Grid of per-agent ratio vectors, each 'A,B,...' with one value per cooperative agent (rooms − 1)."""
+    """Grid of per-agent ratio vectors, each 'A,B,...' with one value (or 'auto') per cooperative agent (rooms − 1)."""
     seeds: Optional[int] = None
     """Seeds per ratio (default 1): first_seed .. first_seed + seeds − 1."""
     first_seed: int = 0
@@ -63,6 +63,11 @@ class Args:
     eval_episodes: Optional[int] = None
     max_episode_steps: Optional[int] = None
     gamma: Optional[float] = None
+    normaliser: Optional[Normaliser] = None
+    """How critics are scaled in the actor loss: batch (the paper's, default), ema (running min/max), floor."""
+    norm_floor: Optional[float] = None
+    """Smallest range the floor normaliser divides by, in reward units (default 1)."""
+    norm_ema_rate: Optional[float] = None
     absorbing_stages: Optional[bool] = None
     """Critic n bootstraps the exact value 1/(1 − γ) once stage n is done (default on; off = the paper's literal rule)."""
     absorbing_success: Optional[bool] = None
@@ -73,14 +78,21 @@ class Args:
 
 OVERRIDES = ("total_steps", "num_envs", "hidden", "batch_size", "buffer_size", "steps_per_epoch",
              "train_loops_per_epoch", "eval_episodes", "max_episode_steps", "gamma", "absorbing_stages",
-             "absorbing_success")
+             "absorbing_success", "normaliser", "norm_floor", "norm_ema_rate")
 
 
-def parse_eta_vector(text: str) -> tuple[float, ...]:
+def parse_eta(text: str, field: str = "eta") -> float | str:
+    if text.strip() == AUTO:
+        return AUTO
     try:
-        return tuple(float(x) for x in text.split(","))
+        return float(text)
     except ValueError:
-        raise ConfigError("eta_per_agent", f"cannot read {text!r}; write ratios as 'A,B' (e.g. 0.1,1.0)") from None
+        raise ConfigError(field, f"cannot read {text!r}; a ratio is a number in [0, 1] or {AUTO!r}") from None
+
+
+def parse_eta_vector(text: str) -> tuple[float | str, ...]:
+    """'0.1,1.0' -> (0.1, 1.0); 'auto,1' -> ('auto', 1.0)."""
+    return tuple(parse_eta(x, "eta_per_agent") for x in text.split(","))
 
 
 def config_from_args(args: Args, base: Optional[Config] = None) -> Config:
@@ -99,7 +111,7 @@ def config_from_args(args: Args, base: Optional[Config] = None) -> Config:
     if args.eta_per_agent is not None:
         explicit["etas"] = tuple(parse_eta_vector(t) for t in args.eta_per_agent)
     elif args.eta is not None or base is None:
-        explicit["etas"] = tuple((x,) for x in (args.eta or (0.1,)))
+        explicit["etas"] = tuple((parse_eta(x),) for x in (args.eta or ("0.1",)))
     if args.seeds is not None or base is None:
         explicit["seeds"] = tuple(range(args.first_seed, args.first_seed + (args.seeds or 1)))
     fields.update(explicit)

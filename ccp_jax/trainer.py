@@ -20,7 +20,7 @@ from ccp_jax import buffer as replay
 from ccp_jax.buffer import ReplayBuffer, Transition
 from ccp_jax.collect import EvalMetrics, make_collect, make_evaluate
 from ccp_jax.config import Config
-from ccp_jax.learner import AgentState, Networks, UpdateMetrics, init_agents, make_networks, make_update
+from ccp_jax.learner import AgentState, Networks, UpdateMetrics, init_agents, make_learner, make_networks
 
 
 class TrainState(struct.PyTreeNode):
@@ -43,6 +43,8 @@ class EpochMetrics(NamedTuple):
     train_episodes: jax.Array
     train_success: jax.Array
     buffer_size: jax.Array  # int32[N]
+    pull_own: jax.Array  # float32[N]: mean ‖∂(η Q̂_n)/∂a‖ on one batch after the epoch's updates
+    pull_next: jax.Array  # float32[N]: mean ‖∂((1 − η) Q̂_{n+1})/∂a‖
 
 
 class Trainer(NamedTuple):
@@ -59,14 +61,15 @@ def make_train(config: Config, env: Env) -> Trainer:
     nets = make_networks(config, action_size)
     collect = make_collect(config, env, nets.actor)
     evaluate = make_evaluate(config, env, nets.actor)
-    update = make_update(config, nets, action_size)
+    learner = make_learner(config, nets, action_size)
     num_channels = 1 if config.num_agents == 1 else config.num_stages
     capacity = config.buffer_size
 
     def init(seed: jax.Array) -> TrainState:
         key = jax.random.PRNGKey(seed)
         key, k_agents, k_env = jax.random.split(key, 3)
-        agents = init_agents(nets, k_agents, config.num_agents, obs_size, action_size)
+        agents = init_agents(nets, k_agents, config.num_agents, obs_size, action_size,
+                             value_range=1.0 / (1.0 - config.gamma))
         example = Transition(obs=jnp.zeros((obs_size,)), action=jnp.zeros((action_size,)),
                              rewards=jnp.zeros((num_channels,)), next_obs=jnp.zeros((obs_size,)),
                              terminal=jnp.zeros(()), completed=jnp.zeros((num_channels,)))
@@ -84,17 +87,20 @@ def make_train(config: Config, env: Env) -> Trainer:
         def loop(agents, k):
             k_sample, k_update = jax.random.split(k)
             batch = replay.sample(buffer, k_sample, config.batch_size)
-            return update(agents, batch, eta, ready, k_update)
+            return learner.update(agents, batch, eta, ready, k_update)
 
+        k_train, k_pulls = jax.random.split(k_train)
         agents, train_metrics = jax.lax.scan(loop, state.agents,
                                              jax.random.split(k_train, config.train_loops_per_epoch))
+        pull_own, pull_next = learner.action_pulls(agents, replay.sample(buffer, k_pulls, config.batch_size), eta,
+                                                   k_pulls)
         eval_metrics = evaluate(agents.actor, k_eval)
         env_steps = state.env_steps + config.steps_per_epoch
         metrics = EpochMetrics(env_steps=env_steps, eval=eval_metrics,
                                train=jax.tree.map(lambda x: x.mean(0), train_metrics),
                                train_episodes=stats.episodes,
                                train_success=stats.successes / jnp.maximum(stats.episodes, 1.0),
-                               buffer_size=buffer.size)
+                               buffer_size=buffer.size, pull_own=pull_own, pull_next=pull_next)
         new_state = TrainState(agents=agents, buffer=buffer, env_state=env_state, key=key,
                                env_steps=env_steps, epoch=state.epoch + 1)
         return new_state, metrics

@@ -12,7 +12,8 @@ from ccp_jax.envs import make_env
 from ccp_jax.train import main, run
 from ccp_jax.trainer import make_grid_train
 
-CONFIG = make_config("tiny", seeds=(0, 1), total_steps=600)  # 3 epochs
+# 3 epochs, 2 members; the running normaliser and an "auto" ratio put their state into the checkpoint too.
+CONFIG = make_config("tiny", etas=((0.1,), ("auto",)), seeds=(0,), normaliser="ema", total_steps=600)
 
 
 def _rows(run_dir):
@@ -74,7 +75,8 @@ def test_resume_can_extend_the_budget(tmp_path, uninterrupted):
 def test_mismatched_config_is_refused_and_nothing_changes(uninterrupted):
     before = (uninterrupted / "metrics.jsonl").read_bytes()
     for argv, field in ((["--rooms", "3"], "rooms"), (["--hidden", "32", "32"], "hidden"),
-                        (["--algo", "naive"], "algo"), (["--eta", "0.5"], "etas")):
+                        (["--algo", "naive"], "algo"), (["--eta", "0.5"], "etas"),
+                        (["--normaliser", "batch"], "normaliser")):
         with pytest.raises(ConfigError) as err:
             main(["--resume", str(uninterrupted), "--no-progress"] + argv)
         assert err.value.field == field

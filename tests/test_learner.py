@@ -7,7 +7,7 @@ import pytest
 from ccp_jax import losses
 from ccp_jax.buffer import Transition
 from ccp_jax.config import make_config
-from ccp_jax.learner import init_agents, make_networks, make_update
+from ccp_jax.learner import init_agents, make_learner, make_networks
 from ccp_jax.networks import sample_action
 
 OBS, ACT, B = 5, 2, 16
@@ -25,7 +25,7 @@ def _setup(algo):
                        rewards=jax.random.uniform(k[2], (2, B, 2)), next_obs=jax.random.normal(k[3], (2, B, OBS)),
                        terminal=(jax.random.uniform(k[4], (2, B)) < 0.2).astype(jnp.float32),
                        completed=jnp.zeros((2, B, 2)).at[:, :3, 0].set(1.0))
-    return config, nets, agents, batch, jax.jit(make_update(config, nets, ACT))
+    return config, nets, agents, batch, jax.jit(make_learner(config, nets, ACT).update)
 
 
 def _agent(tree, n):
@@ -88,3 +88,51 @@ def test_eta_one_is_plain_sac_on_normalised_own_critic_only(csac):
         np.testing.assert_allclose(a[0], b[0], rtol=1e-5, atol=1e-7)
     new_c, _ = update(shuffled, batch, jnp.array([0.0, 1.0]), ready, key)
     assert _changed(new_a.actor, new_c.actor, 0)
+
+
+def _setup_norm(normaliser, flatness=1.0, eta=0.5):
+    config, nets, agents, batch, _ = _setup("csac")
+    config = config.replace(normaliser=normaliser, norm_floor=1.0, norm_ema_rate=0.1)
+    learner = make_learner(config, nets, ACT)
+    # Scale the next critic's output layer: flatness → 0 makes Q_1 nearly constant.
+    def flatten(path, x):
+        last = "Dense_2" in jax.tree_util.keystr(path)
+        return x.at[1].multiply(flatness) if last else x
+    agents = agents.replace(critic=jax.tree_util.tree_map_with_path(flatten, agents.critic))
+    return config, nets, agents, batch, learner, jnp.array([eta, 1.0])
+
+
+def test_running_bounds_and_auto_eta_against_hand_values():
+    config, nets, agents, batch, learner, _ = _setup_norm("ema")
+    agents = agents.replace(norm=agents.norm.replace(lo=jnp.zeros((2, 2)), hi=jnp.full((2, 2), 20.0)))
+    key = jax.random.PRNGKey(7)
+    new, metrics = jax.jit(learner.update)(agents, batch, jnp.array([jnp.nan, 1.0]), jnp.array([True, True]), key)
+    k_pi = jax.random.split(key, (2, 2))[0, 1]
+    b0 = jax.tree.map(lambda x: x[0], batch)
+    mean, log_std = nets.actor.apply(_agent(agents.actor, 0), b0.obs)
+    act, _ = sample_action(mean, log_std, k_pi)
+    q = [jnp.min(nets.critic.apply(_agent(agents.critic, j), b0.obs, act), 0) for j in (0, 1)]
+    lo = np.array([0.1 * float(x.min()) for x in q])  # 0 + 0.1 (min − 0)
+    hi = np.array([20.0 + 0.1 * (float(x.max()) - 20.0) for x in q])
+    np.testing.assert_allclose(new.norm.lo[0], lo, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(new.norm.hi[0], hi, rtol=1e-4)
+    ranges = hi - lo
+    assert float(metrics.eta_used[0]) == pytest.approx(np.clip(ranges[0] / ranges.sum(), 0.05, 0.95), rel=1e-4)
+    assert float(metrics.range_own[0]) == pytest.approx(ranges[0], rel=1e-4)
+    # Agent 1 has no next critic and keeps η = 1.
+    assert float(metrics.eta_used[1]) == 1.0
+
+
+@pytest.mark.parametrize("normaliser, shrinks", [("batch", False), ("ema", True), ("floor", True)])
+def test_flat_next_critic_pull(normaliser, shrinks):
+    """As the next critic flattens 10^4-fold, its pull on the actions should shrink with it;
+    the paper's batch normaliser instead rescales the remaining noise to full size."""
+    pulls = []
+    for flatness in (1.0, 1e-4):
+        _, _, agents, batch, learner, eta = _setup_norm(normaliser, flatness)
+        pulls.append(float(jax.jit(learner.action_pulls)(agents, batch, eta, jax.random.PRNGKey(8))[1][0]))
+    ratio = pulls[1] / pulls[0]
+    if shrinks:
+        assert ratio < 1e-3, pulls
+    else:
+        assert ratio > 0.1, pulls

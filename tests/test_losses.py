@@ -17,20 +17,32 @@ def test_normaliser_per_batch_with_constant_bounds():
     np.testing.assert_allclose(grad, np.full(4, 1.0 / (4.0 + EPS)), rtol=1e-6)
 
 
+def _coop(logp, q_own, q_next, eta, alpha):
+    """The paper's loss: both critics batch-normalised."""
+    return losses.coop_actor_loss(logp, losses.normalise(q_own, EPS), losses.normalise(q_next, EPS), eta, alpha)
+
+
+def test_normaliser_with_given_bounds():
+    q = jnp.array([1.0, 3.0])
+    np.testing.assert_allclose(losses.normalise(q, 0.0, lo=jnp.float32(0.0), scale=jnp.float32(4.0)), [0.25, 0.75])
+    grad = jax.grad(lambda x: losses.normalise(x, 0.0, lo=x.min(), scale=x.max() * 2).sum())(q)
+    np.testing.assert_allclose(grad, [0.25 / 1.5, 0.25 / 1.5])  # bounds are constants even when computed from q
+
+
 def test_coop_actor_loss_extremes_and_mixture():
     logp = jnp.array([-1.0, -2.0, 0.5])
     q_own = jnp.array([0.0, 10.0, 5.0])  # Q̂_own = [0, 1, 0.5]
     q_next = jnp.array([4.0, 2.0, 3.0])  # Q̂_next = [1, 0, 0.5]
     alpha = 0.2
     entropy = alpha * np.mean([-1.0, -2.0, 0.5])
-    own = losses.coop_actor_loss(logp, q_own, q_next, 1.0, alpha, EPS)
-    nxt = losses.coop_actor_loss(logp, q_own, q_next, 0.0, alpha, EPS)
-    mix = losses.coop_actor_loss(logp, q_own, q_next, 0.3, alpha, EPS)
+    own = _coop(logp, q_own, q_next, 1.0, alpha)
+    nxt = _coop(logp, q_own, q_next, 0.0, alpha)
+    mix = _coop(logp, q_own, q_next, 0.3, alpha)
     assert float(own) == pytest.approx(entropy - 0.5, abs=1e-6)
     assert float(nxt) == pytest.approx(entropy - 0.5, abs=1e-6)
     assert float(mix) == pytest.approx(entropy - np.mean([0.7, 0.3, 0.5]), abs=1e-6)
     # η = 1 ignores the next critic entirely.
-    other = losses.coop_actor_loss(logp, q_own, -q_next * 7, 1.0, alpha, EPS)
+    other = _coop(logp, q_own, -q_next * 7, 1.0, alpha)
     assert float(other) == pytest.approx(float(own), abs=1e-6)
 
 
@@ -47,7 +59,7 @@ def test_cooperative_gradient_points_to_the_weighted_critic():
         a = theta + 0.0 * s
         q_own = -(a - 1.0) ** 2 + s  # state-dependent offsets spread the batch range
         q_next = -(a + 1.0) ** 2 + 2 * s
-        return losses.coop_actor_loss(jnp.zeros_like(s), q_own, q_next, eta, 0.0, EPS)
+        return _coop(jnp.zeros_like(s), q_own, q_next, eta, 0.0)
 
     assert float(jax.grad(loss)(0.0, 1.0)) < 0  # descending moves θ up, toward Q_n's peak
     assert float(jax.grad(loss)(0.0, 0.0)) > 0  # toward Q_{n+1}'s peak
@@ -83,5 +95,4 @@ def test_alpha_loss_value_and_gradient():
 
 
 def test_eta_star():
-    q_own, q_next = jnp.array([0.0, 3.0]), jnp.array([1.0, 2.0])
-    assert float(losses.eta_star(q_own, q_next, EPS)) == pytest.approx(3.0 / 4.0, rel=1e-5)
+    assert float(losses.eta_star(jnp.float32(3.0), jnp.float32(1.0), EPS)) == pytest.approx(3.0 / 4.0, rel=1e-5)

@@ -20,7 +20,7 @@ import tyro
 from ccp_jax import buffer as replay
 from ccp_jax.buffer import Transition
 from ccp_jax.config import make_config
-from ccp_jax.learner import init_agents, make_networks, make_update
+from ccp_jax.learner import init_agents, make_learner, make_networks
 
 
 @dataclasses.dataclass
@@ -63,7 +63,7 @@ def main(args: Args) -> dict:
     config = make_config("paper", rooms=args.rooms, algo=args.algo, hidden=args.hidden, batch_size=args.batch)
     n = config.num_agents
     nets = make_networks(config, args.act)
-    update = make_update(config, nets, args.act)
+    update = make_learner(config, nets, args.act).update
     keys = jax.random.split(jax.random.PRNGKey(0), args.grid)
     agents = jax.vmap(lambda k: init_agents(nets, k, n, args.obs, args.act))(keys)
     r = config.num_agents if args.algo != "sac" else 1
