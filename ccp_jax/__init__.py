@@ -1,6 +1,18 @@
-"""ccp-jax: Cooperative Consecutive Policies (CSAC) for multi-stage RL, end to end in JAX."""
-from ccp_jax.config import Config, ConfigError, make_config
-from ccp_jax.policy import load_policy
-from ccp_jax.train import run
+"""ccp-jax: Cooperative Consecutive Policies (CSAC) for multi-stage RL, end to end in JAX.
 
-__all__ = ["Config", "ConfigError", "make_config", "load_policy", "run"]
+The public API is imported lazily, so `python -m ccp_jax.plot` and friends start
+without loading JAX, brax and MuJoCo first.
+"""
+import importlib
+
+_EXPORTS = {
+    "Config": "ccp_jax.config", "ConfigError": "ccp_jax.config", "make_config": "ccp_jax.config",
+    "load_policy": "ccp_jax.policy", "run": "ccp_jax.train",
+}
+__all__ = list(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name in _EXPORTS:
+        return getattr(importlib.import_module(_EXPORTS[name]), name)
+    raise AttributeError(f"module 'ccp_jax' has no attribute {name!r}")

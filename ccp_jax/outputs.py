@@ -105,7 +105,7 @@ def summary_table(summary: dict) -> str:
     lines = [f"{'member':>6}  {'algo':<5}  {'eta':<14}  {'seed':>4}  {'final success':>13}  "
              f"{'final return':>12}  {'first success at':>16}"]
     for m in summary["members"]:
-        eta = ",".join(x if isinstance(x, str) else f"{x:g}" for x in m["eta"])
+        eta = ",".join(x if isinstance(x, str) else f"{x:g}" for x in m["eta"]) if m["algo"] == "csac" else "-"
         first = "-" if m["first_success_env_steps"] is None else f"{m['first_success_env_steps']:,}"
         lines.append(f"{m['member']:>6}  {m['algo']:<5}  {eta:<14}  {m['seed']:>4}  {m['final_success']:>13.2f}  "
                      f"{m['final_return']:>12.1f}  {first:>16}")

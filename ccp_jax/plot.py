@@ -21,6 +21,7 @@ from matplotlib.figure import Figure
 from ccp_jax import outputs
 
 Group = tuple[str, str, tuple[float, ...]]  # (task, algo, eta vector)
+Series = tuple[np.ndarray, np.ndarray]  # (env_steps int64[E], values float64[E]) of one member
 
 
 def new_figure(width: float = 6.4, height: float = 4.0) -> Figure:
@@ -47,13 +48,13 @@ def _value(row: dict, metric: str) -> Optional[float]:
     return None if value is None else float(value)
 
 
-def load_curves(run_dirs: Sequence[str | Path], metric: str = "success_rate") -> dict[Group, list[tuple[np.ndarray, np.ndarray]]]:
+def load_curves(run_dirs: Sequence[str | Path], metric: str = "success_rate") -> dict[Group, list[Series]]:
     """Per (task, algo, eta vector): one (env_steps int64[E], values float64[E]) series per grid member.
 
     Members of the same group from several run folders are pooled (e.g. seeds trained in
     separate runs). Rows where the metric is undefined are dropped.
     """
-    groups: dict[Group, list[tuple[np.ndarray, np.ndarray]]] = defaultdict(list)
+    groups: dict[Group, list[Series]] = defaultdict(list)
     for run_dir in map(Path, run_dirs):
         config = json.loads((run_dir / "config.json").read_text())
         members: dict[int, list[dict]] = defaultdict(list)
@@ -78,7 +79,7 @@ def group_label(group: Group, show_task: bool = False) -> str:
     return f"{task} {label}" if show_task else label
 
 
-def mean_std(series: Sequence[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def mean_std(series: Sequence[Series]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(steps[S], mean[S], std[S], count[S]) over members at every env-step value any member logged.
 
     Members with shorter runs simply stop contributing, so the tail may average fewer seeds.
@@ -93,7 +94,7 @@ def mean_std(series: Sequence[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarra
             np.asarray([len(v) for v in vals]))
 
 
-def curves(groups: dict[Group, list[tuple[np.ndarray, np.ndarray]]], metric: str = "success_rate",
+def curves(groups: dict[Group, list[Series]], metric: str = "success_rate",
            ax: Optional[Axes] = None, title: Optional[str] = None) -> Figure:
     """Mean ± std over members of each group vs env steps, one line per group (from `load_curves`).
 

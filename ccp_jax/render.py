@@ -14,6 +14,7 @@ import functools
 import importlib.util
 import json
 import sys
+import warnings
 from pathlib import Path
 from typing import Callable, Optional, Sequence
 
@@ -29,6 +30,7 @@ from matplotlib.patches import Circle
 
 from ccp_jax.config import Config
 from ccp_jax.envs import make_env
+from ccp_jax.plot import group_label
 from ccp_jax.policy import load_policy
 from envs_mjx.maze import Maze
 
@@ -72,12 +74,14 @@ def rollout(env: Env, policy: Callable, key: jax.Array, episodes: int, max_steps
         def step(state: State, _):
             nxt = env.step(state, policy(state.obs, state.info["stage"]))
             state = jax.tree.map(lambda a, b: jnp.where(state.done > 0, a, b), state, nxt)
-            return state, (state.obs, state.info["stage"], _pose(state), state.reward, state.done, state.metrics["success"])
+            return state, record(state, state.reward)
+
+        def record(state: State, reward: jax.Array):
+            return state.obs, state.info["stage"], _pose(state), reward, state.done, state.metrics["success"]
 
         first = env.reset(k)
         _, trace = jax.lax.scan(step, first, None, length=max_steps)
-        start = (first.obs, first.info["stage"], _pose(first), jnp.zeros_like(first.reward), first.done,
-                 first.metrics["success"])
+        start = record(first, jnp.zeros_like(first.reward))  # no step taken yet: no reward
         return jax.tree.map(lambda a, b: jnp.concatenate([a[None], b]), start, trace)
 
     obs, stage, pose, reward, done, success = jax.device_get(jax.jit(jax.vmap(one))(jax.random.split(key, episodes)))
@@ -93,12 +97,12 @@ def rollout(env: Env, policy: Callable, key: jax.Array, episodes: int, max_steps
 def maze_frames(env: Maze, episode: Episode, title: str = "", px_per_m: int = 48) -> np.ndarray:
     """Top-down frames of a maze episode, uint8[T, H, W, 3].
 
-    H = 5·px_per_m + 96 and W = 5N·px_per_m + 96 (multiples of 16 at the default
+    H = 5·px_per_m + 80 and W = 5N·px_per_m + 96 (multiples of 16 at the default
     scale, as video encoders want). Rays are the observation's laser beams
     (obs[:n_beams] · beam range, beam i at heading + 2πi/n_beams).
     """
     g = env.geometry
-    width, height = int(g.width * px_per_m) + 96, int(g.room_size * px_per_m) + 96
+    width, height = int(g.width * px_per_m) + 96, int(g.room_size * px_per_m) + 80
     fig = Figure(figsize=(width / 100, height / 100), dpi=100)
     canvas = FigureCanvasAgg(fig)
     # Fixed axes box (no auto layout), so nothing shifts between frames when the title changes.
@@ -163,7 +167,10 @@ def write_video(path: Path, frames: np.ndarray, fps: float) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     if suffix == ".gif":
         iio.imwrite(path, frames, extension=".gif", duration=1000 / fps, loop=0)
-    else:
+        return path
+    with warnings.catch_warnings():
+        # ffmpeg is started by fork + exec at once, which JAX's fork warning does not apply to.
+        warnings.filterwarnings("ignore", message="os.fork", category=RuntimeWarning)
         iio.imwrite(path, frames, extension=".mp4", fps=fps, codec="libx264", quality=7, macro_block_size=16)
     return path
 
@@ -180,8 +187,7 @@ def render(run_dir: Path, member: int = 0, episodes: int = 2, out: Optional[Path
     draw = frame_renderer(env)
     policy = load_policy(run_dir, member, epoch=epoch)
     eps = rollout(env, policy, jax.random.PRNGKey(seed), episodes, config.max_episode_steps)
-    eta, _ = config.grid[member]
-    label = f"{config.algo} η={','.join(f'{x:g}' for x in eta)}  member {member}"
+    label = f"{group_label(('', config.algo, config.grid[member][0]))}  member {member}"
     hold = max(1, int(fps / 2))
     clips = []
     for e, ep in enumerate(eps):

@@ -18,7 +18,7 @@ import numpy as np
 import tyro
 from tqdm.auto import tqdm
 
-from ccp_jax import checkpoint, outputs
+from ccp_jax import checkpoint, loggers, outputs
 from ccp_jax.config import AUTO, PRESETS, Config, ConfigError, Normaliser, PresetName, make_config
 from ccp_jax.envs import make_env
 from ccp_jax.trainer import make_grid_train
@@ -74,6 +74,10 @@ class Args:
     """Success bootstraps the absorbing value of all-ones rewards (default on; off = success ends with value 0)."""
     progress: bool = True
     """Show a progress bar."""
+    tensorboard: bool = True
+    """Write TensorBoard event files, one folder per grid member (DIR/tb/member_K)."""
+    wandb_project: Optional[str] = None
+    """Also log to this Weights & Biases project (needs `pip install wandb`)."""
 
 
 OVERRIDES = ("total_steps", "num_envs", "hidden", "batch_size", "buffer_size", "steps_per_epoch",
@@ -151,13 +155,22 @@ def resume_config(args: Args) -> Config:
 
 
 def run(config: Config, out: Path, progress: bool = True, resume: bool = False,
-        checkpoint_every: int = 10) -> dict:
+        checkpoint_every: int = 10, tensorboard: bool = True, wandb_project: Optional[str] = None) -> dict:
     """Trains the grid of `config` in `out`: config.json, metrics.jsonl, summary.json, checkpoints/.
 
     With `resume`, continues from the latest checkpoint in `out`; metrics rows
     written after that checkpoint are replaced by their (identical) recomputation.
     Returns the summary (per member: final success = mean of the last 10 epochs).
     """
+    sinks = loggers.make_loggers(out, config, tensorboard, wandb_project)  # fails before compiling
+    try:
+        return _train(config, out, progress, resume, checkpoint_every, sinks)
+    finally:
+        sinks.close()
+
+
+def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_every: int,
+           sinks: loggers.Loggers) -> dict:
     env = make_env(config)
     trainer = make_grid_train(config, env)
     eta, seed = config.grid_arrays()
@@ -183,6 +196,7 @@ def run(config: Config, out: Path, progress: bool = True, resume: bool = False,
         metrics = jax.device_get(metrics)
         epoch_rows = outputs.metric_rows(config, epoch + 1, metrics, time.time() - t0)
         outputs.append_rows(metrics_path, epoch_rows)
+        sinks.write(epoch_rows)
         rows.extend(epoch_rows)
         if epoch + 1 == config.num_epochs or (checkpoint_every and (epoch + 1) % checkpoint_every == 0):
             checkpoint.save(mngr, epoch + 1, state)
@@ -207,7 +221,8 @@ def main(argv: Optional[list[str]] = None) -> dict:
     print(f"{'Resuming' if args.resume else 'Training'} {config.grid_size} run(s) of {config.algo} on {config.env} "
           f"({config.num_stages} stages, {config.num_epochs} epochs of {config.steps_per_epoch} steps) -> {out}")
     summary = run(config, out, progress=args.progress, resume=args.resume is not None,
-                  checkpoint_every=args.checkpoint_every)
+                  checkpoint_every=args.checkpoint_every, tensorboard=args.tensorboard,
+                  wandb_project=args.wandb_project)
     print(outputs.summary_table(summary))
     print(f"wall time {summary['wall_s']:.0f} s; files in {out}")
     return summary

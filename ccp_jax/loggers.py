@@ -1,0 +1,116 @@
+"""Metric sinks for the host loop: TensorBoard (one event folder per grid member) and,
+optionally, Weights & Biases.
+
+    loggers = make_loggers(out, config, tensorboard=True, wandb_project=None)
+    loggers.write(outputs.metric_rows(...))   # once per epoch
+    loggers.close()
+
+Every sink takes the metrics.jsonl rows of one epoch (one dict per grid member) and logs
+their numbers against `env_steps`; a per-agent list `name` becomes tags `name/agent_n`.
+"""
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+from typing import Optional, Protocol, Sequence
+
+from ccp_jax.config import Config
+
+# Row fields that identify the member or the step rather than measure anything.
+ID_FIELDS = ("member", "seed", "eta", "algo", "epoch", "env_steps")
+
+
+class Sink(Protocol):
+    def write(self, rows: Sequence[dict]) -> None: ...
+
+    def close(self) -> None: ...
+
+
+def scalars(row: dict) -> dict[str, float]:
+    """The row's metrics as flat tags: numbers as `name`, per-agent lists as `name/agent_n`.
+
+    Undefined entries (None, e.g. η* of the last agent) are left out.
+    """
+    flat = {}
+    for name, value in row.items():
+        if name in ID_FIELDS:
+            continue
+        if isinstance(value, list):
+            flat.update({f"{name}/agent_{n}": float(v) for n, v in enumerate(value) if v is not None})
+        elif isinstance(value, (int, float)) and not isinstance(value, bool):
+            flat[name] = float(value)
+    return flat
+
+
+class TensorBoardLogger:
+    """One tensorboardX writer per grid member, writing to OUT/tb/member_K (step = env_steps)."""
+
+    def __init__(self, out: Path, config: Config):
+        from tensorboardX import SummaryWriter  # imported here: only runs that log need it
+
+        eta, seed = config.grid_arrays()
+        self.writers = [SummaryWriter(logdir=str(Path(out) / "tb" / f"member_{k}")) for k in range(config.grid_size)]
+        for k, writer in enumerate(self.writers):
+            writer.add_text("member", f"algo {config.algo}, env {config.env}, eta {eta[k].tolist()}, seed {seed[k]}")
+
+    def write(self, rows: Sequence[dict]) -> None:
+        for row in rows:
+            writer = self.writers[row["member"]]
+            for tag, value in scalars(row).items():
+                writer.add_scalar(tag, value, global_step=row["env_steps"])
+        for writer in self.writers:
+            writer.flush()  # once per epoch, so a crashed run keeps its curves
+
+    def close(self) -> None:
+        for writer in self.writers:
+            writer.close()
+
+
+class WandbLogger:
+    """One W&B run for the whole grid; member K's tags are logged as `member_K/tag`, step = epoch."""
+
+    def __init__(self, out: Path, config: Config, project: str):
+        import wandb
+
+        self.run = wandb.init(project=project, name=Path(out).name, dir=str(out), config=config.to_dict())
+
+    def write(self, rows: Sequence[dict]) -> None:
+        if not rows:
+            return
+        # W&B wants one log call per step with a monotonic step: the epoch, shared by all members.
+        data = {}
+        for row in rows:
+            tags = {**scalars(row), "env_steps": row["env_steps"]}
+            data.update({f"member_{row['member']}/{tag}": value for tag, value in tags.items()})
+        self.run.log(data, step=rows[0]["epoch"])
+
+    def close(self) -> None:
+        self.run.finish()
+
+
+class Loggers:
+    """Forwards every call to each of its sinks."""
+
+    def __init__(self, sinks: Sequence[Sink]):
+        self.sinks = list(sinks)
+
+    def write(self, rows: Sequence[dict]) -> None:
+        for sink in self.sinks:
+            sink.write(rows)
+
+    def close(self) -> None:
+        for sink in self.sinks:
+            sink.close()
+
+
+def make_loggers(out: Path, config: Config, tensorboard: bool = True, wandb_project: Optional[str] = None) -> Loggers:
+    """The sinks asked for (possibly none). W&B is used only when `wandb_project` is given;
+    asking for it without the `wandb` package raises ImportError before anything is trained."""
+    if wandb_project is not None and importlib.util.find_spec("wandb") is None:
+        raise ImportError("wandb_project was given but wandb is not installed: pip install wandb")
+    sinks: list[Sink] = []
+    if tensorboard:
+        sinks.append(TensorBoardLogger(out, config))
+    if wandb_project is not None:
+        sinks.append(WandbLogger(out, config, wandb_project))
+    return Loggers(sinks)

@@ -1,0 +1,214 @@
+"""Plots, videos and metric loggers made from a real (tiny) run folder."""
+from __future__ import annotations
+
+import importlib.machinery
+import json
+import struct
+import sys
+import types
+from pathlib import Path
+
+import imageio.v3 as iio
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from ccp_jax import loggers, outputs, plot, render
+from ccp_jax.config import Config
+from ccp_jax.train import main as train_main
+from envs_mjx.maze import Maze
+from toy_env import Line  # tests/ is on sys.path (conftest)
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory) -> Path:
+    out = tmp_path_factory.mktemp("runs") / "tiny"
+    train_main(["--preset", "tiny", "--seeds", "2", "--out", str(out), "--no-progress"])
+    return out
+
+
+@pytest.fixture(scope="module")
+def config(run_dir) -> Config:
+    return Config.from_dict(json.loads((run_dir / "config.json").read_text()))
+
+
+def _decoded_png(path: Path) -> np.ndarray:
+    assert path.stat().st_size > 5000
+    image = iio.imread(path)
+    assert image.ndim == 3 and image.shape[0] > 100 and image.shape[1] > 100
+    assert len(np.unique(image.reshape(-1, image.shape[-1]), axis=0)) > 10  # something was drawn
+    return image
+
+
+# ----- plots -------------------------------------------------------------------------------------
+def test_plot_cli_writes_success_png(run_dir):
+    assert plot.main([str(run_dir)]) == run_dir / "success.png"
+    _decoded_png(run_dir / "success.png")
+
+
+def test_plot_per_agent_metric_and_bad_metric(run_dir, tmp_path):
+    out = plot.main([str(run_dir), "--metric", "q_loss/1", "--out", str(tmp_path / "q.png")])
+    _decoded_png(out)
+    with pytest.raises(SystemExit):
+        plot.main([str(run_dir), "--metric", "q_loss"])  # per-agent without an agent index
+    with pytest.raises(SystemExit):
+        plot.main([str(run_dir), "--metric", "no_such_metric"])
+
+
+def test_load_curves_groups_members_by_algo_and_eta(run_dir, config):
+    groups = plot.load_curves([run_dir, run_dir])  # the same run twice pools its members twice
+    (group, series), = groups.items()
+    assert group == ("maze-2", "csac", (0.1, 1.0))
+    assert len(series) == 2 * config.grid_size
+    steps = np.arange(1, config.num_epochs + 1) * config.steps_per_epoch
+    for s, v in series:
+        np.testing.assert_array_equal(s, steps)
+        assert v.shape == steps.shape
+
+
+def test_mean_std_over_members_of_different_lengths():
+    steps, mean, std, count = plot.mean_std([(np.array([10, 20]), np.array([0.0, 1.0])),
+                                             (np.array([10, 20, 30]), np.array([1.0, 0.0, 0.5]))])
+    np.testing.assert_array_equal(steps, [10, 20, 30])
+    np.testing.assert_allclose(mean, [0.5, 0.5, 0.5])
+    np.testing.assert_allclose(std, [0.5, 0.5, 0.0])
+    np.testing.assert_array_equal(count, [2, 2, 1])
+
+
+def test_heatmap_and_ratio_grid(tmp_path):
+    runs = []
+    for i, etas in enumerate([[(0.1, 0.5), (0.5, 0.5)], [(0.1, 0.9)]]):
+        run = tmp_path / f"sweep{i}"
+        run.mkdir()
+        members = [{"eta": [a, b, 1.0], "final_success": a + b + seed} for a, b in etas for seed in (0, 1)]
+        (run / "summary.json").write_text(json.dumps({"members": members}))
+        runs.append(run)
+    eta1, eta2, values = plot.ratio_grid(runs)
+    np.testing.assert_allclose(eta1, [0.1, 0.5])
+    np.testing.assert_allclose(eta2, [0.5, 0.9])
+    np.testing.assert_allclose(values, [[1.1, 1.5], [1.5, np.nan]])  # mean over seeds 0, 1 adds 0.5
+
+    fig = plot.heatmap(values / 2, eta1, eta2, title="3 rooms")
+    fig.savefig(tmp_path / "heat.png")
+    _decoded_png(tmp_path / "heat.png")
+    with pytest.raises(ValueError, match="shape"):
+        plot.heatmap(values, eta2[:1], eta1)
+
+
+# ----- videos ------------------------------------------------------------------------------------
+def test_render_cli_video_frames_change(run_dir, tmp_path):
+    path = render.main([str(run_dir), "--member", "1", "--episodes", "2", "--out", str(tmp_path / "m1.gif")])
+    assert path == tmp_path / "m1.gif" and path.stat().st_size > 10_000
+    frames = iio.imread(path)  # [T, H, W, 3 or 4]
+    assert frames.ndim == 4 and len(frames) > 10
+    assert frames.shape[1:3] == (5 * 48 + 80, 10 * 48 + 96)
+    assert np.any(frames[0] != frames[len(frames) // 2]) and np.any(frames[1] != frames[-1])
+
+
+def test_rollout_stops_at_done_and_maze_frames_follow_the_robot():
+    env = Maze(rooms=2, episode_length=12)
+    forward = jax.jit(lambda obs, stage: jnp.broadcast_to(jnp.array([1.0, 0.3]), obs.shape[:-1] + (2,)))
+    eps = render.rollout(env, forward, jax.random.PRNGKey(3), episodes=2, max_steps=20)
+    for ep in eps:
+        assert ep.steps == 12 and not ep.success  # truncated by the env at episode_length
+        assert ep.obs.shape == (13, env.observation_size) and ep.pose.shape == (13, 3)
+        np.testing.assert_allclose(ep.pose[:, :2] / [10.0, 5.0], ep.obs[:, 20:22], atol=1e-6)
+        assert ep.pose[-1, 0] > ep.pose[0, 0] + 1.0
+    frames = render.maze_frames(env, eps[0], "test  ")
+    assert frames.shape == (13, 320, 576, 3) and frames.dtype == np.uint8
+    assert all(np.any(a != b) for a, b in zip(frames[:-1], frames[1:]))
+
+
+@pytest.mark.filterwarnings("ignore:os.fork:RuntimeWarning")  # reading MP4 starts ffmpeg
+def test_write_video_mp4_or_gif_fallback(tmp_path, monkeypatch):
+    frames = np.zeros((6, 64, 96, 3), np.uint8)
+    frames[np.arange(6), :, np.arange(6) * 10] = 255  # a moving bar
+    if render.has_ffmpeg():
+        path = render.write_video(tmp_path / "a.mp4", frames, fps=5)
+        assert path.suffix == ".mp4" and len(iio.imread(path)) == 6
+    monkeypatch.setattr(render, "has_ffmpeg", lambda: False)
+    path = render.write_video(tmp_path / "b.mp4", frames, fps=5)
+    assert path == tmp_path / "b.gif"
+    decoded = iio.imread(path)
+    assert len(decoded) == 6 and np.any(decoded[0] != decoded[-1])
+    with pytest.raises(render.RenderError, match="mp4 or .gif"):
+        render.write_video(tmp_path / "c.avi", frames, fps=5)
+
+
+def test_unsupported_env_is_refused_before_rollout():
+    with pytest.raises(render.RenderError, match="no renderer for Line"):
+        render.frame_renderer(Line())
+
+
+def test_peg_frames_through_render_frames():
+    peg = pytest.importorskip("envs_mjx.peg_in_hole")
+    if not hasattr(peg, "render_frames"):
+        pytest.skip("envs_mjx.peg_in_hole has no render_frames")
+    env = peg.PegInHole(episode_length=10)
+    qpos = np.tile(env.mj_model.qpos0, (3, 1)).astype(np.float32)
+    episode = render.Episode(obs=np.zeros((3, 1)), stage=np.zeros(3, np.int32), pose=qpos,
+                             reward=np.zeros(3), success=False)
+    try:
+        frames = render.frame_renderer(env)(episode, "")
+    except RuntimeError as err:  # no OpenGL for MuJoCo here
+        pytest.skip(str(err))
+    assert frames.shape[0] == 3 and frames.dtype == np.uint8 and frames.std() > 0
+
+
+# ----- loggers -----------------------------------------------------------------------------------
+def _scalar_events(folder: Path) -> dict[str, list[tuple[int, float]]]:
+    """tag -> [(step, value)] from the TFRecord event files in `folder` (raw protobuf read)."""
+    from tensorboardX.proto import event_pb2
+
+    found: dict[str, list[tuple[int, float]]] = {}
+    for path in sorted(folder.glob("events.out.tfevents.*")):
+        data, i = path.read_bytes(), 0
+        while i < len(data):
+            (n,) = struct.unpack("<Q", data[i:i + 8])  # record: length, crc, payload, crc
+            event = event_pb2.Event.FromString(data[i + 12:i + 12 + n])
+            i += 12 + n + 4
+            for value in event.summary.value:
+                if value.WhichOneof("value") == "simple_value":
+                    found.setdefault(value.tag, []).append((event.step, value.simple_value))
+    return found
+
+
+def test_tensorboard_logger_writes_one_folder_per_member(run_dir, config, tmp_path):
+    rows = outputs.read_rows(run_dir / "metrics.jsonl")
+    sink = loggers.make_loggers(tmp_path, config, tensorboard=True)
+    for epoch in range(1, config.num_epochs + 1):
+        sink.write([r for r in rows if r["epoch"] == epoch])
+    sink.close()
+    assert sorted(p.name for p in (tmp_path / "tb").iterdir()) == [f"member_{k}" for k in range(config.grid_size)]
+    for member in range(config.grid_size):
+        mine = [r for r in rows if r["member"] == member]
+        events = _scalar_events(tmp_path / "tb" / f"member_{member}")
+        assert {"success_rate", "eval_return", "q_loss/agent_0", "q_loss/agent_1", "eta_star/agent_0"} <= set(events)
+        assert "eta_star/agent_1" not in events and "epoch" not in events  # undefined η*; ids are not metrics
+        assert events["eval_return"] == [(r["env_steps"], pytest.approx(r["eval_return"])) for r in mine]
+        assert events["pi_loss/agent_1"] == [(r["env_steps"], pytest.approx(r["pi_loss"][1])) for r in mine]
+
+
+def test_wandb_is_optional_and_used_when_asked(run_dir, config, tmp_path, monkeypatch):
+    sink = loggers.make_loggers(tmp_path, config, tensorboard=False)
+    assert sink.sinks == []  # nothing asked for, nothing made
+
+    monkeypatch.setitem(sys.modules, "wandb", None)  # as if not installed
+    with pytest.raises(ImportError, match="pip install wandb"):
+        loggers.make_loggers(tmp_path, config, tensorboard=False, wandb_project="p")
+
+    logged = []
+    fake_run = types.SimpleNamespace(log=lambda data, step: logged.append((step, data)), finish=lambda: None)
+    fake = types.ModuleType("wandb")
+    fake.__spec__ = importlib.machinery.ModuleSpec("wandb", None)
+    fake.init = lambda **kw: fake_run
+    monkeypatch.setitem(sys.modules, "wandb", fake)
+    sink = loggers.make_loggers(tmp_path, config, tensorboard=False, wandb_project="p")
+    rows = [r for r in outputs.read_rows(run_dir / "metrics.jsonl") if r["epoch"] == 1]
+    sink.write(rows)
+    sink.close()
+    (step, data), = logged
+    assert step == 1
+    assert data["member_1/success_rate"] == rows[1]["success_rate"]
+    assert data["member_0/q_loss/agent_1"] == pytest.approx(rows[0]["q_loss"][1])
