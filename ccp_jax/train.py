@@ -16,6 +16,7 @@ from typing import Literal, Optional
 import jax
 import numpy as np
 import tyro
+from jax.experimental import multihost_utils
 from tqdm.auto import tqdm
 
 from ccp_jax import checkpoint, loggers, outputs
@@ -78,6 +79,12 @@ class Args:
     """Write TensorBoard event files, one folder per grid member (DIR/tb/member_K)."""
     wandb_project: Optional[str] = None
     """Also log to this Weights & Biases project (needs `pip install wandb`)."""
+    distributed: bool = False
+    """Multi-host: call jax.distributed.initialize() first (every host runs the same command; see README)."""
+    coordinator: Optional[str] = None
+    """With --distributed: host0:port of the coordinator (auto-detected on SLURM, Open MPI, Kubernetes, Cloud TPU)."""
+    num_processes: Optional[int] = None
+    process_id: Optional[int] = None
 
 
 OVERRIDES = ("total_steps", "num_envs", "hidden", "batch_size", "buffer_size", "steps_per_epoch",
@@ -174,6 +181,7 @@ def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_e
     env = make_env(config)
     trainer = make_grid_train(config, env)
     eta, seed = config.grid_arrays()
+    lead = jax.process_index() == 0  # with several hosts, one writes the files; all save checkpoints
     mngr = checkpoint.manager(out)
     metrics_path = out / "metrics.jsonl"
     start = time.time()
@@ -182,21 +190,24 @@ def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_e
         if first_epoch > config.num_epochs:
             raise ConfigError("total_steps", f"the run already has {first_epoch} epochs, more than {config.num_epochs}")
         rows = [r for r in outputs.read_rows(metrics_path) if r["epoch"] <= first_epoch]
-        outputs.write_rows(metrics_path, rows)
+        if lead:
+            outputs.write_rows(metrics_path, rows)
     else:
         first_epoch, state, rows = 0, trainer.init(seed), []
-    outputs.write_json(out / "config.json", config.to_dict())
+    if lead:
+        outputs.write_json(out / "config.json", config.to_dict())
 
     bar = tqdm(range(first_epoch, config.num_epochs), initial=first_epoch, total=config.num_epochs,
-               desc=f"{config.algo} {config.env} x{config.grid_size}", unit="epoch", disable=not progress,
-               dynamic_ncols=True)
+               desc=f"{config.algo} {config.env} x{config.grid_size}", unit="epoch",
+               disable=not (progress and lead), dynamic_ncols=True)
     for epoch in bar:
         t0 = time.time()
         state, metrics = trainer.train_step(state, eta)
-        metrics = jax.device_get(metrics)
+        metrics = to_host(metrics)
         epoch_rows = outputs.metric_rows(config, epoch + 1, metrics, time.time() - t0)
-        outputs.append_rows(metrics_path, epoch_rows)
-        sinks.write(epoch_rows)
+        if lead:
+            outputs.append_rows(metrics_path, epoch_rows)
+            sinks.write(epoch_rows)
         rows.extend(epoch_rows)
         if epoch + 1 == config.num_epochs or (checkpoint_every and (epoch + 1) % checkpoint_every == 0):
             checkpoint.save(mngr, epoch + 1, state)
@@ -205,12 +216,23 @@ def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_e
                         mean_success=f"{success.mean():.2f}")
     mngr.close()
     summary = outputs.summarise(config, rows, wall_s=time.time() - start)
-    outputs.write_json(out / "summary.json", summary)
+    if lead:
+        outputs.write_json(out / "summary.json", summary)
     return summary
+
+
+def to_host(tree):
+    """Numpy copies of (possibly multi-host, sharded) arrays."""
+    if jax.process_count() == 1:
+        return jax.device_get(tree)
+    return multihost_utils.process_allgather(tree, tiled=True)
 
 
 def main(argv: Optional[list[str]] = None) -> dict:
     args = tyro.cli(Args, args=argv)
+    if args.distributed:
+        jax.distributed.initialize(coordinator_address=args.coordinator, num_processes=args.num_processes,
+                                   process_id=args.process_id)
     if args.checkpoint_every < 0:
         raise ConfigError("checkpoint_every", f"must be >= 0, got {args.checkpoint_every}")
     if args.resume is not None:
