@@ -4,6 +4,12 @@ The public API is imported lazily, so `python -m ccp_jax.plot` and friends start
 without loading JAX, brax and MuJoCo first.
 """
 import importlib
+import os
+
+from envs_mjx import cpu_xla_flags
+
+# Before JAX starts: the CPU fusion emitters slow MJX ~50x (a user's own setting is kept).
+os.environ["XLA_FLAGS"] = cpu_xla_flags()
 
 _EXPORTS = {
     "Config": "ccp_jax.config", "ConfigError": "ccp_jax.config", "make_config": "ccp_jax.config",

@@ -19,3 +19,20 @@ This package knows nothing of agents. Every env here follows one contract
   time limit (``episode_length`` steps, counted in ``info["steps"]``) was hit;
   truncation is not a termination and must not stop bootstrapping.
 """
+
+import os
+
+# XLA's CPU fusion emitters make MJX ~50x slower on CPU (PEG_NOTES.md); this switches them off.
+XLA_CPU_FLAG = "--xla_cpu_use_fusion_emitters=false"
+
+
+def cpu_xla_flags(flags: str | None = None) -> str:
+    """``flags`` (default: $XLA_FLAGS) with the CPU fusion-emitter switch appended if absent.
+
+    Set ``os.environ["XLA_FLAGS"] = cpu_xla_flags()`` before JAX initialises its CPU
+    backend. A user's own setting of the flag is kept.
+    """
+    flags = os.environ.get("XLA_FLAGS", "") if flags is None else flags
+    if "xla_cpu_use_fusion_emitters" in flags:
+        return flags
+    return (flags + " " + XLA_CPU_FLAG).strip()

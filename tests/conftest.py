@@ -4,6 +4,10 @@ import tempfile
 
 sys.path.insert(0, os.path.dirname(__file__))  # toy_env
 
+from envs_mjx import cpu_xla_flags  # noqa: E402
+
+os.environ["XLA_FLAGS"] = cpu_xla_flags()  # as ccp_jax sets it, before any test imports JAX
+
 # Many tests compile the same tiny programs; a persistent compilation cache shared by
 # the session (and its subprocesses) compiles each only once.
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR", os.path.join(tempfile.gettempdir(), "ccp-jax-test-cache"))

@@ -8,10 +8,11 @@ from __future__ import annotations
 
 import os
 
-# MJX on CPU: XLA's fusion emitters make kinematics ~10x slower (see PEG_NOTES). Append the
+from envs_mjx import cpu_xla_flags
+
+# MJX on CPU: XLA's fusion emitters make this env ~50x slower (see PEG_NOTES). Append the
 # switch before JAX starts, keeping anything the user set.
-if "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
-    os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + " --xla_cpu_use_fusion_emitters=false").strip()
+os.environ["XLA_FLAGS"] = cpu_xla_flags()
 
 import chex  # noqa: E402
 import jax  # noqa: E402
@@ -251,6 +252,49 @@ def test_render_frames(run, env):
     assert np.abs(frames[0].astype(int) - frames[-1].astype(int)).mean() > 1.0  # the scene changed
     with pytest.raises(ValueError):
         render_frames(env, qpos, height=2000, width=2000)
+
+
+_RENDER_SNIPPET = """
+import sys
+try:
+    if sys.argv[1] == "mujoco-first":
+        import mujoco  # imported first: its GL backend is fixed by MUJOCO_GL as it is now
+    import numpy as np
+    from envs_mjx.peg_in_hole import PegInHole, render_frames
+    env = PegInHole()
+    f = render_frames(env, np.tile(env.mj_model.qpos0, (2, 1)), camera="wide", height=48, width=64)
+    print("FRAMES", f.shape, f.dtype, float(f.std()))
+except (RuntimeError, ImportError) as err:
+    print("ERROR", err)
+"""
+
+
+@pytest.mark.parametrize("mujoco_gl", [None, "osmesa"])
+def test_render_frames_headless_backends(mujoco_gl):
+    """`mujoco` imported before MUJOCO_GL is set (GLFW, no display): frames through an EGL
+    context made by render_frames. MUJOCO_GL=osmesa: frames if libosmesa6 is installed,
+    else an error (mujoco's import fails) that names the package."""
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("MUJOCO_GL", "PYOPENGL_PLATFORM", "DISPLAY",
+                                                            "WAYLAND_DISPLAY")}
+    if mujoco_gl:
+        env["MUJOCO_GL"] = mujoco_gl
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
+    env["JAX_PLATFORMS"] = "cpu"
+    order = "mujoco-first" if mujoco_gl is None else "env-first"
+    out = subprocess.run([sys.executable, "-c", _RENDER_SNIPPET, order], env=env, capture_output=True, text=True,
+                         timeout=300, cwd=root)
+    lines = [ln for ln in out.stdout.splitlines() if ln.startswith(("FRAMES", "ERROR"))]
+    assert out.returncode == 0 and lines, out.stdout + out.stderr
+    if lines[0].startswith("FRAMES"):
+        assert "(2, 48, 64, 3) uint8" in lines[0] and float(lines[0].split()[-1]) > 5.0
+    else:
+        assert "MUJOCO_GL" in lines[0] and "libosmesa6" in lines[0]
+        if mujoco_gl is None:  # EGL is what this fallback relies on; say why it failed
+            pytest.skip(lines[0])
 
 
 def test_cpu_xla_flags_appends_without_overriding():
