@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 import jax
+import numpy as np
 import orbax.checkpoint as ocp
 
 from ccp_jax.config import ConfigError
@@ -31,14 +32,29 @@ def manager(run_dir: Path, max_to_keep: int = 2) -> ocp.CheckpointManager:
                                  options=ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True))
 
 
+def _nonempty(tree: Any) -> dict[str, Any]:
+    """The tree's leaves by flat index, without zero-size arrays (orbax cannot write those;
+    MJX states have some, e.g. `act` of a model without actuator activations)."""
+    return {str(i): x for i, x in enumerate(jax.tree.leaves(tree)) if x.size > 0}
+
+
+def _rebuild(abstract: Any, saved: dict[str, Any]) -> Any:
+    """Inverse of `_nonempty`: zero-size leaves come back as empty arrays of their shape and sharding."""
+    leaves, treedef = jax.tree.flatten(abstract)
+    return jax.tree.unflatten(treedef, [
+        saved[str(i)] if str(i) in saved
+        else jax.device_put(np.zeros(x.shape, x.dtype), getattr(x, "sharding", None))
+        for i, x in enumerate(leaves)])
+
+
 def save(mngr: ocp.CheckpointManager, epoch: int, state: Any) -> None:
     """Saves `state` as step `epoch` and waits until it is complete on disk.
 
     The actors' parameters are also saved as a small item of their own, so a
     policy can be loaded without reading the replay buffers.
     """
-    mngr.save(epoch, args=ocp.args.Composite(state=ocp.args.StandardSave(state),
-                                             policy=ocp.args.StandardSave(state.agents.actor)))
+    mngr.save(epoch, args=ocp.args.Composite(state=ocp.args.StandardSave(_nonempty(state)),
+                                             policy=ocp.args.StandardSave(_nonempty(state.agents.actor))))
     mngr.wait_until_finished()
 
 
@@ -59,7 +75,9 @@ def restore(mngr: ocp.CheckpointManager, abstract_state: Any, item: str = "state
     elif epoch not in steps:
         raise CheckpointError(f"no checkpoint of epoch {epoch} in {folder}; there are {sorted(steps)}")
     try:
-        state = mngr.restore(epoch, args=ocp.args.Composite(**{item: ocp.args.StandardRestore(abstract_state)}))[item]
+        saved = mngr.restore(epoch, args=ocp.args.Composite(
+            **{item: ocp.args.StandardRestore(_nonempty(abstract_state))}))[item]
+        state = _rebuild(abstract_state, saved)
     except Exception as err:  # orbax raises many types for damaged files
         earlier = sorted(s for s in steps if s != epoch)
         hint = (f"; earlier checkpoints {earlier} are untouched: move {folder / str(epoch)} away to resume from one"
