@@ -59,13 +59,14 @@ out = Path(tempfile.mkdtemp()) / "sweep"
 config = make_config("tiny" if TINY else "small", rooms=3, etas=pairs, seeds=(0,) if TINY else (0, 1, 2),
                      total_steps=400 if TINY else 300_000)
 summary = run(config, out, progress=not TINY)'''),
-    new_code_cell('''from IPython.display import display
+    new_code_cell('''from IPython.display import Image, display
 from ccp_jax.plot import heatmap
 success = np.zeros((len(ratios), len(ratios)))
 for m in summary["members"]:
     i, j = ratios.index(m["eta"][0]), ratios.index(m["eta"][1])
     success[i, j] += m["final_success"] / len(config.seeds)
-display(heatmap(success, ratios, ratios, title="final success over (η1, η2)"))
+heatmap(success, ratios, ratios, title="final success over (η1, η2)").savefig(out / "heatmap.png", dpi=100)
+display(Image(str(out / "heatmap.png")))
 best = np.unravel_index(success.argmax(), success.shape)
 print("best pair", ratios[best[0]], ratios[best[1]], "success", success[best])'''),
 ]
