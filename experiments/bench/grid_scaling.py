@@ -1,0 +1,186 @@
+"""How an epoch's wall time scales with the grid size G (runs vmapped together) and the number of agents N.
+
+    python experiments/bench/grid_scaling.py                          # G = 1..32 at N = 3, then N = 1..4 at G = 1
+    python experiments/bench/grid_scaling.py --grids 1 4 16 --agents  # grid sweep only
+    python experiments/bench/grid_scaling.py --breakdown              # also split epochs into collect / update / eval
+
+Every configuration is the real grid trainer (`make_grid_train`) of one
+process, on the maze, with the "small" preset ([64, 64] nets, batch 256) and
+a shortened epoch so that 32 runs finish in seconds: `steps_per_epoch` env
+steps (1 env), `loops` joint updates (the paper's 1 update per 5 env steps),
+evaluation of `eval_episodes` deterministic episodes of at most
+`episode_length` steps (an untrained policy uses all of them), buffers of
+`buffer` transitions per agent. Every configuration is built and run
+once first (that epoch compiles; its time minus the median epoch is the
+compile time); then epochs of all configurations are timed round-robin,
+`reps` rounds, each to `block_until_ready`, and each figure is the median of
+its configuration's epochs, so a change of load on a shared machine spreads
+over all configurations instead of landing on one.
+
+Columns: epoch s = one call of `train_step` for the whole grid; per run =
+epoch s / G; speed-up = G · epoch(G=1) / epoch(G), i.e. how many times more
+runs per second the grid gives than one run at a time.
+N = 1 is end-to-end SAC (one agent); N >= 2 is CSAC on an N-room maze.
+With `--breakdown` each configuration is also run with evaluation stubbed out
+and with a single update per epoch, which splits the epoch into collection,
+updates and evaluation (by difference).
+"""
+from __future__ import annotations
+
+import dataclasses
+import statistics
+import sys
+import time
+from pathlib import Path
+from unittest import mock
+
+import jax
+import jax.numpy as jnp
+import tyro
+
+import ccp_jax.trainer as trainer_module
+from ccp_jax.config import make_config
+from ccp_jax.envs import make_env
+from ccp_jax.trainer import make_grid_train
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from vs_brax import _no_eval  # noqa: E402
+
+
+@dataclasses.dataclass
+class Args:
+    grids: tuple[int, ...] = (1, 2, 4, 8, 16, 32)
+    """Grid sizes G for the grid sweep (at `grid_agents` agents); empty to skip."""
+    grid_agents: int = 3
+    agents: tuple[int, ...] = (1, 2, 3, 4)
+    """Agent counts N for the agent sweep (at G = `agents_grid`); empty to skip."""
+    agents_grid: int = 1
+    preset: str = "small"
+    hidden: tuple[int, ...] = (64, 64)
+    steps_per_epoch: int = 500
+    loops: int = 100
+    eval_episodes: int = 5
+    episode_length: int = 200
+    buffer: int = 10_000
+    reps: int = 3
+    breakdown: bool = False
+
+
+def config_for(args: Args, n_agents: int, grid: int, **overrides):
+    algo, rooms = ("sac", 2) if n_agents == 1 else ("csac", n_agents)
+    fields = dict(algo=algo, rooms=rooms, hidden=args.hidden, steps_per_epoch=args.steps_per_epoch,
+                  train_loops_per_epoch=args.loops, num_envs=1, start_steps=0, eval_episodes=args.eval_episodes,
+                  max_episode_steps=args.episode_length, buffer_size=args.buffer, seeds=tuple(range(grid)),
+                  total_steps=100 * args.steps_per_epoch)
+    return make_config(args.preset, **{**fields, **overrides})
+
+
+class Run:
+    """The grid trainer of `config`, built and compiled; `epoch()` runs and times one `train_step`."""
+
+    def __init__(self, config, evaluate: bool = True):
+        env = make_env(config)
+        if evaluate:
+            self.trainer = make_grid_train(config, env)
+        else:
+            with mock.patch.object(trainer_module, "make_evaluate", _no_eval):
+                self.trainer = make_grid_train(config, env)
+        self.eta, seeds = (jnp.asarray(x) for x in config.grid_arrays())
+        self.state = jax.block_until_ready(self.trainer.init(seeds))
+        self.times: list[float] = []
+        before = avals(self.state)
+        self.first = self.epoch()  # compiles
+        # A state whose types change in the first epoch (e.g. a weak-typed leaf from init) makes the second
+        # call compile again; name such leaves, and keep that second compile out of the timed epochs too.
+        self.retraced = [f"{a[0]}: {a[1:]} -> {b[1:]}" for a, b in zip(before, avals(self.state)) if a != b]
+        self.second = self.epoch() if self.retraced else 0.0
+        self.times.clear()
+
+    def epoch(self) -> float:
+        t = time.perf_counter()
+        self.state, metrics = self.trainer.train_step(self.state, self.eta)
+        jax.block_until_ready((self.state, metrics))
+        self.times.append(time.perf_counter() - t)
+        return self.times[-1]
+
+    @property
+    def median(self) -> float:
+        return statistics.median(self.times)
+
+
+def avals(tree) -> list[tuple]:
+    """(path, shape, dtype, weak_type) of every leaf: what jit's cache keys on."""
+    return [(jax.tree_util.keystr(p), x.shape, x.dtype, getattr(x, "weak_type", False))
+            for p, x in jax.tree_util.tree_flatten_with_path(tree)[0]]
+
+
+def build(args: Args, n_agents: int, grid: int) -> dict[str, Run]:
+    runs = {"full": Run(config_for(args, n_agents, grid))}
+    if args.breakdown:
+        runs["no_eval"] = Run(config_for(args, n_agents, grid), evaluate=False)
+        runs["collect"] = Run(config_for(args, n_agents, grid, train_loops_per_epoch=1), evaluate=False)
+    return runs
+
+
+def row_of(n_agents: int, grid: int, runs: dict[str, Run]) -> dict:
+    full = runs["full"]
+    row = {"agents": n_agents, "grid": grid, "epoch_s": full.median, "compile_s": full.first - full.median,
+           "epochs": full.times, "recompiled_s": full.second - full.median if full.retraced else 0.0,
+           "retraced": full.retraced}
+    if "collect" in runs:
+        no_eval, collect = runs["no_eval"].median, runs["collect"].median
+        row.update(collect_s=collect, update_s=no_eval - collect, eval_s=full.median - no_eval)
+    return row
+
+
+def print_rows(rows: list[dict], args: Args, base: dict) -> None:
+    head = f"{'G':>4}{'N':>3}{'epoch s':>10}{'per run s':>11}{'speed-up':>10}{'agent-upd/s':>13}{'env steps/s':>13}{'compile s':>11}"
+    if args.breakdown:
+        head += f"{'collect':>9}{'update':>8}{'eval':>7}"
+    print(head)
+    for r in rows:
+        g, n, e = r["grid"], r["agents"], r["epoch_s"]
+        speedup = g * base["epoch_s"] / e if base["agents"] == n else float("nan")
+        line = (f"{g:>4}{n:>3}{e:>10.2f}{e / g:>11.3f}{speedup:>10.2f}{g * n * args.loops / e:>13.0f}"
+                f"{g * args.steps_per_epoch / e:>13.0f}{r['compile_s']:>11.1f}")
+        if args.breakdown:
+            line += "".join(f"{r[k] / e:>{w}.0%}" for k, w in (("collect_s", 9), ("update_s", 8), ("eval_s", 7)))
+        if r.get("retraced"):
+            line += f"   + {r['recompiled_s']:.1f} s compiling again in epoch 2"
+        print(line)
+
+
+def main(args: Args) -> dict:
+    print(f"preset {args.preset}, hidden {args.hidden}, epoch = {args.steps_per_epoch} env steps (1 env) + "
+          f"{args.loops} joint updates + eval {args.eval_episodes} × ≤{args.episode_length} steps; buffers "
+          f"{args.buffer}/agent; medians of {args.reps} epochs; devices {jax.devices()}")
+    configs = [("grid", args.grid_agents, g) for g in args.grids] + [("agents", n, args.agents_grid) for n in args.agents]
+    built = []
+    for sweep, n, g in configs:  # compile everything first ...
+        built.append((sweep, n, g, build(args, n, g)))
+        full = built[-1][3]["full"]
+        print(f"  built N={n} G={g}: first epoch (compile + run) {full.first:.1f} s", flush=True)
+        if full.retraced:
+            print(f"  WARNING N={n} G={g}: the state's types changed in the first epoch, so the second epoch "
+                  f"compiled again ({full.second:.1f} s): " + "; ".join(full.retraced), flush=True)
+    for r in range(args.reps):  # ... then time epochs round-robin, so load changes hit every configuration alike
+        for _, _, _, runs in built:
+            for run in runs.values():
+                run.epoch()
+        print(f"  round {r}: " + ", ".join(f"N={n} G={g} {runs['full'].times[-1]:.2f} s"
+                                           for _, n, g, runs in built), flush=True)
+    result = {"args": dataclasses.asdict(args), "grid": [], "agents": []}
+    for sweep, n, g, runs in built:
+        result[sweep].append(row_of(n, g, runs))
+    if result["grid"]:
+        print(f"\nGrid sweep (N = {args.grid_agents}); speed-up against G = {result['grid'][0]['grid']}:")
+        base = result["grid"][0]
+        print_rows(result["grid"], args, {**base, "epoch_s": base["epoch_s"] / base["grid"]})
+    if result["agents"]:
+        print(f"\nAgent sweep (G = {args.agents_grid}); N = 1 is end-to-end SAC:")
+        print_rows(result["agents"], args, {"agents": -1, "epoch_s": 1.0})
+    return result
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))

@@ -1,0 +1,259 @@
+"""Our trainer (one agent, algo="sac") against brax's SAC trainer, same maze, same work, one process.
+
+    python experiments/bench/vs_brax.py                      # [256, 256], paper epoch, 2 rounds
+    python experiments/bench/vs_brax.py --hidden 64 64 --epoch-steps 2000
+
+Both train end-to-end SAC on `envs_mjx.maze.Maze(rooms)` with the same network
+sizes (actor and twin critic), batch, number of envs, buffer capacity and
+gradient updates per env step. brax interleaves one actor step of `num_envs`
+envs with `grad_updates_per_step` updates; our epoch collects `epoch_steps`
+env steps and then runs `epoch_steps · grad_updates_per_step / num_envs`
+updates: the same work per epoch (the paper's 5000 steps / 1000 updates is
+num_envs 5, one update per actor step).
+
+Timing, compile excluded:
+* brax: its own per-epoch `training/sps` (wall time of one pmapped
+  `training_epoch`, which excludes evaluation), read through `progress_fn`.
+  The first epoch of each brax training includes the compile; it is dropped,
+  and compile is reported as (first epoch − median epoch).
+* ours: each `train_step` call is timed to `block_until_ready`; the trainer
+  is compiled (and warmed) before brax starts. Reported twice: the real
+  `train_step` (which also evaluates `eval_episodes` deterministic episodes
+  every epoch) and the same step with evaluation stubbed out, which is the
+  work brax's timer covers.
+* pairing: right after each brax epoch, inside brax's `progress_fn` and
+  outside its timer, one epoch of each of ours runs. Each brax epoch and the
+  ours that follows it share the machine's load at that moment; the reported
+  ratio is the median over pairs of (brax epoch s / our epoch s). On a shared
+  machine absolute numbers drift; the ratio is the result.
+
+brax's wrappers keep their own float step counter and truncation and, on
+auto-reset, restore only `pipeline_state` and `obs` (not `info`), so the maze
+is given to brax through `BraxMaze`, which carries the whole maze state in
+`pipeline_state` and leaves the time limit to brax's `EpisodeWrapper`.
+"""
+from __future__ import annotations
+
+import dataclasses
+import functools
+import statistics
+import sys
+import time
+from pathlib import Path
+from unittest import mock
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import tyro
+from brax.envs.base import Env, State
+
+import ccp_jax.trainer as trainer_module
+from ccp_jax.collect import EvalMetrics
+from ccp_jax.config import make_config
+from ccp_jax.trainer import make_grid_train
+from envs_mjx.maze import Maze
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from update_speed import matmul_roof  # noqa: E402
+
+
+@dataclasses.dataclass
+class Args:
+    hidden: tuple[int, ...] = (256, 256)
+    """Hidden layers of actor and each critic (both trainers)."""
+    rooms: int = 2
+    batch: int = 256
+    num_envs: int = 5
+    """Envs stepped together (brax's num_envs; ours num_envs)."""
+    grad_updates_per_step: int = 1
+    """Updates per actor step of num_envs envs: 1 with 5 envs is the paper's 0.2 updates per env step."""
+    epoch_steps: int = 5000
+    """Env steps per timed epoch (the paper's epoch: 5000)."""
+    epochs: int = 3
+    """Timed epochs per brax training (plus its first epoch, which compiles)."""
+    rounds: int = 2
+    """brax trainings; after each brax epoch one epoch of each of ours runs, so the pairs share the load."""
+    buffer: int = 100_000
+    start_steps: int = 1000
+    """Ours: uniform-random steps; brax: min_replay_size (prefill, untimed)."""
+    eval_episodes: int = 10
+    episode_length: int = 1000
+    roof: bool = True
+    """Also measure the jnp.dot roof at the widest layer, for context."""
+
+
+class BraxMaze(Env):
+    """The maze as brax's trainer sees it: obs, reward, done (success only) and metrics.
+
+    The whole maze `State` rides in `pipeline_state`, so brax's auto-reset
+    restores all of it (stage included); the inner time limit is disabled and
+    brax's `EpisodeWrapper` truncates at `episode_length` instead.
+    """
+
+    def __init__(self, rooms: int):
+        self.maze = Maze(rooms=rooms, episode_length=2**30)
+
+    def _outer(self, inner: State) -> State:
+        return State(pipeline_state=inner, obs=inner.obs, reward=inner.reward, done=inner.done,
+                     metrics={"success": inner.metrics["success"]}, info={})
+
+    def reset(self, rng: jax.Array) -> State:
+        return self._outer(self.maze.reset(rng))
+
+    def step(self, state: State, action: jax.Array) -> State:
+        inner = self.maze.step(state.pipeline_state, action)
+        return state.replace(pipeline_state=inner, obs=inner.obs, reward=inner.reward, done=inner.done,
+                             metrics={**state.metrics, "success": inner.metrics["success"]})
+
+    @property
+    def observation_size(self) -> int:
+        return self.maze.observation_size
+
+    @property
+    def action_size(self) -> int:
+        return self.maze.action_size
+
+    @property
+    def backend(self) -> str:
+        return "jax"
+
+
+def updates_per_epoch(args: Args) -> int:
+    if (args.epoch_steps * args.grad_updates_per_step) % args.num_envs or args.epoch_steps % args.num_envs:
+        raise SystemExit("epoch_steps must be a multiple of num_envs")
+    return args.epoch_steps * args.grad_updates_per_step // args.num_envs
+
+
+def run_brax(args: Args, seed: int, after_epoch=lambda: None) -> dict:
+    """One brax SAC training of (epochs + 1) epochs; per-epoch wall times from its own timer.
+
+    `after_epoch()` runs right after each training epoch (inside brax's progress_fn, outside its timer).
+    """
+    from brax.training.agents.sac import networks as sac_networks
+    from brax.training.agents.sac import train as sac
+
+    sps: list[float] = []
+
+    def progress(step, metrics):
+        if "training/sps" in metrics:
+            sps.append(float(metrics["training/sps"]))
+            after_epoch()
+
+    epochs = args.epochs + 1
+    sac.train(
+        environment=BraxMaze(args.rooms),
+        num_timesteps=args.start_steps + epochs * args.epoch_steps,
+        episode_length=args.episode_length,
+        num_envs=args.num_envs,
+        num_eval_envs=args.eval_episodes,
+        learning_rate=3e-4,
+        discounting=0.95,
+        seed=seed,
+        batch_size=args.batch,
+        num_evals=epochs + 1,  # an initial eval, then one after every epoch
+        tau=0.005,
+        min_replay_size=args.start_steps,
+        max_replay_size=args.buffer,
+        grad_updates_per_step=args.grad_updates_per_step,
+        deterministic_eval=True,
+        network_factory=functools.partial(sac_networks.make_sac_networks, hidden_layer_sizes=args.hidden),
+        progress_fn=progress,
+    )
+    if len(sps) != epochs:
+        raise RuntimeError(f"brax reported {len(sps)} training epochs, expected {epochs}")
+    times = [args.epoch_steps / s for s in sps]
+    return {"epoch_s": times, "compile_s": times[0] - statistics.median(times[1:])}
+
+
+def _no_eval(config, env, actor):
+    """A stand-in for `make_evaluate` that does nothing (zeros), to time an epoch without evaluation."""
+    def evaluate(actor_params, key):
+        z = jnp.zeros((), jnp.float32)
+        return EvalMetrics(z, z, z, jnp.zeros((config.num_stages,), jnp.float32), z)
+    return evaluate
+
+
+class OurRun:
+    """Our grid trainer with one member and one agent; `epoch()` runs and times one `train_step`."""
+
+    def __init__(self, args: Args, seed: int, evaluate: bool):
+        config = make_config(
+            "paper", rooms=args.rooms, algo="sac", hidden=args.hidden, batch_size=args.batch,
+            num_envs=args.num_envs, steps_per_epoch=args.epoch_steps, train_loops_per_epoch=updates_per_epoch(args),
+            total_steps=1000 * args.epoch_steps, buffer_size=args.buffer, start_steps=args.start_steps,
+            eval_episodes=args.eval_episodes, max_episode_steps=args.episode_length, seeds=(seed,))
+        env = Maze(rooms=args.rooms, episode_length=args.episode_length)
+        if evaluate:
+            self.trainer = make_grid_train(config, env)
+        else:
+            with mock.patch.object(trainer_module, "make_evaluate", _no_eval):
+                self.trainer = make_grid_train(config, env)
+        self.eta, seeds = (jnp.asarray(x) for x in config.grid_arrays())
+        self.state = jax.block_until_ready(self.trainer.init(seeds))
+        self.times: list[float] = []
+        first = self.epoch()  # compiles
+        self.times.clear()
+        self.compile_s = first - min(self.epoch(), self.epoch())
+        self.times.clear()
+
+    def epoch(self) -> float:
+        t = time.perf_counter()
+        self.state, metrics = self.trainer.train_step(self.state, self.eta)
+        jax.block_until_ready((self.state, metrics))
+        self.times.append(time.perf_counter() - t)
+        return self.times[-1]
+
+
+def main(args: Args) -> dict:
+    updates = updates_per_epoch(args)
+    print(f"maze rooms={args.rooms}, hidden={args.hidden}, batch={args.batch}, num_envs={args.num_envs}, "
+          f"{args.epoch_steps} env steps + {updates} updates per epoch, {args.rounds} brax trainings × "
+          f"{args.epochs} timed epochs, each followed by one epoch of each of ours; devices={jax.devices()}")
+    ours = {"ours": OurRun(args, 0, evaluate=True), "ours_no_eval": OurRun(args, 0, evaluate=False)}
+    runs = {"brax": [], "ours": [], "ours_no_eval": []}
+    compiles = {"brax": [], **{k: [o.compile_s] for k, o in ours.items()}}
+    for r in range(args.rounds):
+        for o in ours.values():
+            o.times.clear()
+        out = run_brax(args, r, after_epoch=lambda: [o.epoch() for o in ours.values()])
+        runs["brax"] += out["epoch_s"][1:]  # the first brax epoch compiles
+        compiles["brax"].append(out["compile_s"])
+        for k, o in ours.items():
+            runs[k] += o.times[1:]  # paired with the timed brax epochs
+        print(f"  round {r}: brax " + ", ".join(f"{x:.2f}" for x in out["epoch_s"][1:]) + " s; ours " +
+              ", ".join(f"{x:.2f}" for x in ours["ours"].times[1:]) + " s; ours no eval " +
+              ", ".join(f"{x:.2f}" for x in ours["ours_no_eval"].times[1:]) + " s", flush=True)
+
+    rows = {}
+    for name, times in runs.items():
+        med = statistics.median(times)
+        rows[name] = {"epoch_s": med, "env_steps_per_s": args.epoch_steps / med, "updates_per_s": updates / med,
+                      "compile_s": statistics.median(compiles[name]), "spread": (max(times) - min(times)) / med}
+    # Ratios of paired epochs (run back to back, so under the same machine load), then their median.
+    paired = {k: statistics.median(b / o for b, o in zip(runs["brax"], runs[k])) for k in ("ours", "ours_no_eval")}
+    print()
+    print(f"{'trainer':<28}{'epoch s':>9}{'env steps/s':>13}{'updates/s':>11}{'ms/update*':>12}"
+          f"{'compile s':>11}{'spread':>8}{'ours/brax':>11}")
+    labels = {"brax": "brax SAC (training/sps)", "ours": "ours, train_step (+eval)", "ours_no_eval": "ours, no eval (= brax's)"}
+    for name, row in rows.items():
+        print(f"{labels[name]:<28}{row['epoch_s']:>9.2f}{row['env_steps_per_s']:>13.0f}{row['updates_per_s']:>11.1f}"
+              f"{1e3 / row['updates_per_s']:>12.2f}{row['compile_s']:>11.1f}{row['spread']:>8.0%}"
+              f"{paired.get(name, 1.0):>11.2f}")
+    print(f"* epoch wall time / updates per epoch (env steps included). spread = (max − min) / median over "
+          f"{len(runs['brax'])} epochs. ours/brax = median over epochs of brax epoch / the paired epoch of ours "
+          f"(throughput ratio; > 1: ours faster).")
+    print(f"Same work (evaluation excluded on both sides): ours/brax = {paired['ours_no_eval']:.2f}x; "
+          f"ours with its per-epoch evaluation of {args.eval_episodes} episodes: {paired['ours']:.2f}x.")
+    result = {"args": dataclasses.asdict(args), "rows": rows, "ratio": paired["ours_no_eval"],
+              "ratio_with_eval": paired["ours"]}
+    if args.roof:
+        roof = matmul_roof(args.batch, max(args.hidden), reps=3)
+        print(f"jnp.dot roof at [{args.batch}, {max(args.hidden)}] @ [{max(args.hidden)}, {max(args.hidden)}]: "
+              f"{roof / 1e9:.0f} GFLOP/s")
+        result["roof_gflops"] = roof / 1e9
+    return result
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))
