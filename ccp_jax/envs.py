@@ -9,9 +9,9 @@ if TYPE_CHECKING:
 
     from ccp_jax.config import Config
 
-ENV_NAMES = ("maze", "peg")
+ENV_NAMES = ("maze", "peg", "pusher")
 # Envs whose number of stages does not depend on `Config.rooms`.
-FIXED_STAGES = {"peg": 2}
+FIXED_STAGES = {"peg": 2, "pusher": 2}
 
 
 def make_env(config: "Config") -> "Env":
@@ -24,5 +24,9 @@ def make_env(config: "Config") -> "Env":
         from envs_mjx.peg_in_hole import PegInHole
 
         return PegInHole(episode_length=config.max_episode_steps)
+    if config.env == "pusher":
+        from envs_mjx.pusher import Pusher
+
+        return Pusher(episode_length=config.max_episode_steps)
     module_name, _, factory = config.env.partition(":")
     return getattr(importlib.import_module(module_name), factory)()

@@ -33,7 +33,7 @@ class Args:
     """
 
     env: Optional[str] = None
-    """Environment: maze (default), peg, or 'module.path:factory' returning an env that meets the contract."""
+    """Environment: maze (default), peg, pusher, or 'module.path:factory' returning an env that meets the contract (check it with envs_mjx.contract.check_env)."""
     rooms: Optional[int] = None
     """Number of maze rooms (stages); default 2."""
     algo: Optional[Literal["csac", "naive", "sac"]] = None

@@ -1,0 +1,52 @@
+"""A user's own env, as `--env user_env_module:make` would load it (tests/ is on sys.path).
+
+`Slider` is a bare `brax.envs.base.Env` that knows nothing of stages: a point
+x in [0, 2] moved by 0.25 * a per step. `make()` turns it into a two-stage task
+with `StageWrapper` in a few lines: cross [0, 1], then [1, 2].
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from brax.envs.base import Env, State
+
+from envs_mjx.stage_wrapper import StageSpec, StageWrapper
+
+
+class Slider(Env):
+    """x starts in [0, 0.2]; obs float32[1] = [x]; reward 0; never done by itself."""
+
+    speed = 0.25
+
+    @property
+    def observation_size(self) -> int:
+        return 1
+
+    @property
+    def action_size(self) -> int:
+        return 1
+
+    @property
+    def backend(self) -> str:
+        return "jax"
+
+    def reset(self, rng: jax.Array) -> State:
+        x = jax.random.uniform(rng, (), jnp.float32, 0.0, 0.2)
+        zero = jnp.zeros((), jnp.float32)
+        return State(pipeline_state=x, obs=x[None], reward=zero, done=zero)
+
+    def step(self, state: State, action: jax.Array) -> State:
+        x = jnp.clip(state.pipeline_state + self.speed * action[0], 0.0, 2.0)
+        return state.replace(pipeline_state=x, obs=x[None])
+
+
+SPEC = StageSpec(
+    num_stages=2,
+    progress=(lambda s: s.obs[0], lambda s: s.obs[0] - 1.0),
+    completed=(lambda s: s.obs[0] >= 1.0, lambda s: s.obs[0] >= 1.9),
+)
+
+
+def make() -> StageWrapper:
+    """The factory `--env user_env_module:make` calls."""
+    return StageWrapper(Slider(), SPEC, episode_length=50)
