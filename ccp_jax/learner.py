@@ -79,7 +79,7 @@ def init_agents(nets: Networks, key: jax.Array, num_agents: int, obs_size: int, 
         actor = nets.actor.init(k_actor, obs)
         critic = nets.critic.init(k_critic, obs, act)
         log_alpha = jnp.zeros((), jnp.float32)
-        norm = NormState(lo=jnp.zeros((2,)), hi=jnp.full((2,), value_range))
+        norm = NormState(lo=jnp.zeros((2,)), hi=jnp.full((2,), value_range, jnp.float32))  # not weak-typed: no recompile
         return AgentState(norm=norm, actor=actor, critic=critic, target_critic=critic, log_alpha=log_alpha,
                           actor_opt=nets.actor_tx.init(actor), critic_opt=nets.critic_tx.init(critic),
                           alpha_opt=nets.alpha_tx.init(log_alpha))

@@ -140,8 +140,8 @@ def print_rows(rows: list[dict], args: Args, base: dict) -> None:
     print(head)
     for r in rows:
         g, n, e = r["grid"], r["agents"], r["epoch_s"]
-        speedup = g * base["epoch_s"] / e if base["agents"] == n else float("nan")
-        line = (f"{g:>4}{n:>3}{e:>10.2f}{e / g:>11.3f}{speedup:>10.2f}{g * n * args.loops / e:>13.0f}"
+        speedup = f"{g * base['epoch_s'] / e:>10.2f}" if base["agents"] == n else f"{'—':>10}"
+        line = (f"{g:>4}{n:>3}{e:>10.2f}{e / g:>11.3f}{speedup}{g * n * args.loops / e:>13.0f}"
                 f"{g * args.steps_per_epoch / e:>13.0f}{r['compile_s']:>11.1f}")
         if args.breakdown:
             line += "".join(f"{r[k] / e:>{w}.0%}" for k, w in (("collect_s", 9), ("update_s", 8), ("eval_s", 7)))

@@ -44,12 +44,11 @@ from unittest import mock
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import tyro
 from brax.envs.base import Env, State
 
 import ccp_jax.trainer as trainer_module
-from ccp_jax.collect import EvalMetrics
+from ccp_jax.collect import make_evaluate
 from ccp_jax.config import make_config
 from ccp_jax.trainer import make_grid_train
 from envs_mjx.maze import Maze
@@ -167,10 +166,15 @@ def run_brax(args: Args, seed: int, after_epoch=lambda: None) -> dict:
 
 
 def _no_eval(config, env, actor):
-    """A stand-in for `make_evaluate` that does nothing (zeros), to time an epoch without evaluation."""
-    def evaluate(actor_params, key):
-        z = jnp.zeros((), jnp.float32)
-        return EvalMetrics(z, z, z, jnp.zeros((config.num_stages,), jnp.float32), z)
+    """A stand-in for `make_evaluate` whose `evaluate` returns zeros shaped like the real one's metrics.
+
+    Patched into `ccp_jax.trainer` to time an epoch without its evaluation (the real evaluation is only
+    traced abstractly, for its output shapes; it is not part of the compiled program).
+    """
+    real = make_evaluate(config, env, actor)
+
+    def evaluate(*args):
+        return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(real, *args))
     return evaluate
 
 

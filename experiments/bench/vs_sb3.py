@@ -37,7 +37,6 @@ from unittest import mock
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import tyro
 
 import ccp_jax.trainer as trainer_module
@@ -57,7 +56,7 @@ except ImportError:  # the learner's older entry point
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from gym_maze import GymMaze  # noqa: E402
-from update_speed import matmul_roof, timed  # noqa: E402
+from update_speed import matmul_roof  # noqa: E402
 from vs_brax import _no_eval  # noqa: E402
 
 
