@@ -28,5 +28,30 @@ def make_env(config: "Config") -> "Env":
         from envs_mjx.pusher import Pusher
 
         return Pusher(episode_length=config.max_episode_steps)
-    module_name, _, factory = config.env.partition(":")
-    return getattr(importlib.import_module(module_name), factory)()
+    return user_env(config.env)
+
+
+def user_env(spec: str, check: bool = False) -> "Env":
+    """The env a user's 'module.path:factory' returns; with `check`, refused unless it meets the contract.
+
+    Failures raise `ConfigError` on the field "env", before anything of the
+    trainer is compiled (`check_env` jits only the env's own reset and step).
+    """
+    from ccp_jax.config import ConfigError
+
+    module_name, _, factory = spec.partition(":")
+    try:
+        make = getattr(importlib.import_module(module_name), factory)
+    except ImportError as err:
+        raise ConfigError("env", f"cannot import {module_name!r} for {spec!r}: {err}") from None
+    except AttributeError:
+        raise ConfigError("env", f"module {module_name!r} has no factory {factory!r}") from None
+    env = make()
+    if check:
+        from envs_mjx.contract import EnvContractError, check_env
+
+        try:
+            check_env(env)
+        except EnvContractError as err:
+            raise ConfigError("env", f"{spec} is refused: {err}") from None
+    return env

@@ -21,7 +21,7 @@ from tqdm.auto import tqdm
 
 from ccp_jax import checkpoint, loggers, outputs
 from ccp_jax.config import AUTO, PRESETS, Config, ConfigError, Normaliser, PresetName, make_config
-from ccp_jax.envs import make_env
+from ccp_jax.envs import make_env, user_env
 from ccp_jax.trainer import make_grid_train
 
 
@@ -126,8 +126,8 @@ def config_from_args(args: Args, base: Optional[Config] = None) -> Config:
     if args.seeds is not None or base is None:
         explicit["seeds"] = tuple(range(args.first_seed, args.first_seed + (args.seeds or 1)))
     fields.update(explicit)
-    if ":" in fields.get("env", ""):  # a user's env decides its own number of stages
-        fields["rooms"] = make_env(make_config("tiny", env=fields["env"])).num_stages
+    if ":" in fields.get("env", ""):  # a user's env decides its own number of stages, once it is checked
+        fields["rooms"] = user_env(fields["env"], check=True).num_stages
     return make_config("paper", **fields)
 
 

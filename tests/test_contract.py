@@ -288,6 +288,21 @@ def test_train_cli_with_user_env(tmp_path):
     assert (out / "metrics.jsonl").read_text().strip()
 
 
+@pytest.mark.parametrize("env, message", [
+    ("user_env_module:make_broken", "env: user_env_module:make_broken is refused: env breaks the envs_mjx contract"),
+    ("user_env_module:missing", "env: module 'user_env_module' has no factory 'missing'"),
+    ("no_such_module_here:make", "env: cannot import 'no_such_module_here'"),
+])
+def test_train_cli_refuses_bad_user_env_before_writing(tmp_path, env, message):
+    from ccp_jax import ConfigError, train
+
+    out = tmp_path / "run"
+    with pytest.raises(ConfigError, match=re.escape(message)) as err:
+        train.main(["--env", env, "--preset", "tiny", "--out", str(out), "--no-progress"])
+    assert err.value.field == "env"
+    assert not out.exists()
+
+
 # ---------------------------------------------------------------- pusher
 
 

@@ -47,6 +47,17 @@ def test_epoch_shapes_and_dtypes(grid_run):
     assert np.all(np.isfinite(m.train.q_loss)) and np.all(m.eval.stage_fraction[:, 0] == 1.0)
 
 
+def test_state_keeps_its_avals_across_an_epoch(grid_run):
+    """Shape, dtype and weak type of every state leaf survive train_step, so epoch 2 reuses epoch 1's program."""
+    trainer, _ = grid_run
+    eta, seed = GRID.grid_arrays()
+    state = trainer.init(jnp.asarray(seed))
+    aval = lambda tree: jax.tree.map(lambda x: (x.shape, x.dtype, x.weak_type), tree)
+    before = aval(state)
+    after, _ = trainer.train_step(state, jnp.asarray(eta))
+    assert aval(after) == before
+
+
 def test_same_seed_is_identical(grid_run):
     trainer, (state, _) = grid_run
     again, _ = _train(GRID, trainer, 2)

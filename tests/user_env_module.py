@@ -50,3 +50,16 @@ SPEC = StageSpec(
 def make() -> StageWrapper:
     """The factory `--env user_env_module:make` calls."""
     return StageWrapper(Slider(), SPEC, episode_length=50)
+
+
+class _StageSkipping(StageWrapper):
+    """Reports stage 1 from the first step on while its rewards still say stage 0: breaks the contract."""
+
+    def step(self, state: State, action: jax.Array) -> State:
+        state = super().step(state, action)
+        return state.replace(info={**state.info, "stage": jnp.ones_like(state.info["stage"]) * 5})
+
+
+def make_broken() -> StageWrapper:
+    """A factory whose env the CLI must refuse before compiling anything."""
+    return _StageSkipping(Slider(), SPEC, episode_length=50)
