@@ -21,6 +21,7 @@ class Transition(NamedTuple):
     next_obs: jax.Array  # float32[obs]
     terminal: jax.Array  # float32[]: the episode truly ended at s' (success or failure, not time)
     completed: jax.Array  # float32[R]: channel's subtask is done at s', so its value is absorbing
+    next_stage: jax.Array  # int32[]: U(s'), which says whose policy acts at s'
 
 
 class ReplayBuffer(struct.PyTreeNode):

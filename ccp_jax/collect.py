@@ -86,7 +86,8 @@ def make_collect(config: Config, env: Env, actor: Actor) -> Callable:
         tr = Transition(obs=env_state.obs, action=action,
                         rewards=reward_channels(config, nxt.info["rewards"]), next_obs=nxt.obs,
                         terminal=nxt.done * (1.0 - nxt.info["truncation"]),
-                        completed=completed_channels(config, nxt.info["stage"], success))
+                        completed=completed_channels(config, nxt.info["stage"], success),
+                        next_stage=nxt.info["stage"])
         buffer = add(buffer, tr, agent)
         stats = EpisodeStats(stats.episodes + nxt.done.sum(), stats.successes + (nxt.done * success).sum())
         env_state = _where_done(nxt.done, v_reset(jax.random.split(k_reset, num_envs)), nxt)

@@ -12,11 +12,13 @@ from typing import Literal, Sequence
 
 import numpy as np
 
-ALGOS = ("csac", "naive", "sac")
-Algo = Literal["csac", "naive", "sac"]
+ALGOS = ("csac", "naive", "sac", "tp")
+Algo = Literal["csac", "naive", "sac", "tp"]
 PresetName = Literal["paper", "small", "tiny"]
 Normaliser = Literal["batch", "ema", "floor"]
 NORMALISERS = ("batch", "ema", "floor")
+NextAction = Literal["own", "acting"]
+NEXT_ACTIONS = ("own", "acting")
 AUTO = "auto"  # a ratio estimated during training (η*), see `Config.eta_auto_range`
 
 
@@ -63,6 +65,9 @@ class Config:
     # value 1/(1 − γ) there instead of extrapolating into states it never trains on.
     absorbing_stages: bool = True
     normalise_last: bool = False
+    # Whose action a' bootstraps a critic target at s' (SPEC §1): "own" is the paper's a' ~ π_n(s')
+    # for agent n's batch; "acting" uses π_{n+1} where s' has already entered stage n + 1.
+    next_action: NextAction = "own"
     norm_eps: float = 1e-6
     # How Q̂ is scaled: "batch" (the paper: batch min/max), "ema" (running min/max),
     # "floor" (batch min, range at least `norm_floor`, in reward units).
@@ -70,6 +75,27 @@ class Config:
     norm_ema_rate: float = 0.005
     norm_floor: float = 1.0
     eta_auto_range: tuple[float, float] = (0.05, 0.95)
+    # TP (Transition Policies, Lee et al. 2019; ccp_jax/tp). Primitives: a finished --algo naive run.
+    primitives: str | None = None
+    primitives_member: int = 0
+    tp_max_steps: int = 100  # transition steps before termination is forced
+    tp_hidden: tuple[int, ...] = (32, 32)  # tanh policy and value MLPs
+    tp_lr: float = 1e-4
+    tp_clip: float = 0.2
+    tp_value_coef: float = 1.0
+    tp_entropy_coef: float = 1e-3
+    tp_ppo_epochs: int = 10
+    tp_minibatch: int = 64
+    tp_gamma: float = 0.99
+    tp_gae_lambda: float = 0.98
+    tp_delta: float = 0.95  # proximity target of a state t steps before a successful hand-over at T: δ^(T−t)
+    tp_prox_hidden: tuple[int, ...] = (96, 96)  # ReLU proximity predictor
+    tp_prox_lr: float = 1e-4
+    tp_prox_updates: int = 785  # predictor Adam steps per epoch: 5 × (10000 // 64 + 1), as released
+    tp_prox_batch: int = 64
+    tp_buffer_size: int = 100_000  # per predictor and kind (online success, failure, permanent)
+    tp_init_episodes: int = 100  # deterministic primitive episodes for the permanent success states
+    tp_init_fraction: float = 0.3  # early fraction of each successful stage kept as permanent successes
 
     def __post_init__(self) -> None:
         self._validate()
@@ -190,15 +216,51 @@ class Config:
             for x in eta:
                 if x != AUTO and not (isinstance(x, (int, float)) and 0.0 <= float(x) <= 1.0):
                     raise ConfigError("eta", f"ratios must be numbers in [0, 1] or {AUTO!r}, got {x!r}")
+        if self.next_action not in NEXT_ACTIONS:
+            raise ConfigError("next_action", f"unknown rule {self.next_action!r}; choose one of {NEXT_ACTIONS}")
         if self.normaliser not in NORMALISERS:
             raise ConfigError("normaliser", f"unknown normaliser {self.normaliser!r}; choose one of {NORMALISERS}")
         if not 0.0 < self.norm_ema_rate <= 1.0:
             raise ConfigError("norm_ema_rate", f"must be in (0, 1], got {self.norm_ema_rate}")
         if self.norm_floor <= 0:
             raise ConfigError("norm_floor", f"must be positive, got {self.norm_floor}")
+        if self.algo == "tp":
+            self._validate_tp()
         lo, hi = self.eta_auto_range
         if not 0.0 <= lo <= hi <= 1.0:
             raise ConfigError("eta_auto_range", f"must satisfy 0 <= low <= high <= 1, got {self.eta_auto_range}")
+
+    def _validate_tp(self) -> None:
+        if self.primitives is None:
+            raise ConfigError("primitives", "--algo tp needs frozen primitives: train them first with --algo naive "
+                                            "(same env and rooms), then pass that run folder as --primitives DIR")
+        if len(self.etas) != 1:
+            raise ConfigError("eta", "tp has no cooperative ratio; give no --eta grid")
+        for name in ("tp_max_steps", "tp_ppo_epochs", "tp_minibatch", "tp_prox_updates", "tp_buffer_size",
+                     "tp_init_episodes", "primitives_member"):
+            value = getattr(self, name)
+            if not isinstance(value, (int, np.integer)) or value < (0 if name == "primitives_member" else 1):
+                raise ConfigError(name, f"must be a {'non-negative' if name == 'primitives_member' else 'positive'} "
+                                        f"integer, got {value!r}")
+        if not isinstance(self.tp_prox_batch, int) or self.tp_prox_batch < 2:
+            raise ConfigError("tp_prox_batch", f"must be an integer >= 2 (half online, half permanent), got {self.tp_prox_batch!r}")
+        for name in ("tp_hidden", "tp_prox_hidden"):
+            if not getattr(self, name) or any(h <= 0 for h in getattr(self, name)):
+                raise ConfigError(name, f"layer sizes must be positive, got {getattr(self, name)}")
+        for name in ("tp_lr", "tp_prox_lr", "tp_clip"):
+            if getattr(self, name) <= 0:
+                raise ConfigError(name, f"must be positive, got {getattr(self, name)}")
+        for name in ("tp_value_coef", "tp_entropy_coef"):
+            if getattr(self, name) < 0:
+                raise ConfigError(name, f"must be >= 0, got {getattr(self, name)}")
+        if not 0.0 <= self.tp_gamma < 1.0:
+            raise ConfigError("tp_gamma", f"must be in [0, 1), got {self.tp_gamma}")
+        if not 0.0 <= self.tp_gae_lambda <= 1.0:
+            raise ConfigError("tp_gae_lambda", f"must be in [0, 1], got {self.tp_gae_lambda}")
+        if not 0.0 < self.tp_delta < 1.0:
+            raise ConfigError("tp_delta", f"must be in (0, 1), got {self.tp_delta}")
+        if not 0.0 < self.tp_init_fraction <= 1.0:
+            raise ConfigError("tp_init_fraction", f"must be in (0, 1], got {self.tp_init_fraction}")
 
 
 PRESETS: dict[str, dict] = {
@@ -209,7 +271,9 @@ PRESETS: dict[str, dict] = {
     # Seconds-scale runs for tests.
     "tiny": dict(hidden=(16, 16), batch_size=32, buffer_size=4096, steps_per_epoch=200,
                  train_loops_per_epoch=20, total_steps=400, start_steps=100,
-                 max_episode_steps=100, eval_episodes=2, num_envs=2),
+                 max_episode_steps=100, eval_episodes=2, num_envs=2,
+                 tp_max_steps=10, tp_hidden=(16, 16), tp_prox_hidden=(16, 16), tp_prox_updates=10,
+                 tp_ppo_epochs=2, tp_minibatch=32, tp_buffer_size=1024, tp_init_episodes=4),
 }
 
 

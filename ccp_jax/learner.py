@@ -178,16 +178,38 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
                     range_next=jnp.where(has_next, scale[:, 1], 0.0))
         return q_hat, eta_used, new, diag
 
+    acting_next = cooperative and config.next_action == "acting"
+
+    def successor_takes_over(actor, batch: Transition, next_act, next_logp, next_alpha, alpha, k_next):
+        """Where agent n's s' already lies in stage n + 1, a' ~ π_{n+1}(s') with α_{n+1}: the policy acting there.
+
+        next_act [N, B, a], next_logp and next_alpha [N, B] are π_n's; returns them with those rows replaced.
+        """
+        successors = jax.tree.map(lambda x: x[1:], actor)
+        mean, log_std = actor_apply(successors, batch.next_obs[:-1])
+        keys = jax.vmap(lambda k: jax.random.fold_in(k, 1))(k_next[:-1])
+        act, logp = jax.vmap(sample_action)(mean, log_std, keys)  # [N − 1, B, a], [N − 1, B]
+        crossed = batch.next_stage[:-1] > agent_ids[:-1, None]  # [N − 1, B]
+        lead = slice(0, n_agents - 1)
+        return (next_act.at[lead].set(jnp.where(crossed[..., None], act, next_act[lead])),
+                next_logp.at[lead].set(jnp.where(crossed, logp, next_logp[lead])),
+                next_alpha.at[lead].set(jnp.where(crossed, alpha[1:, None], next_alpha[lead])))
+
     def total_loss(trainable, target_critic, norm_state, batch: Transition, eta, ready, keys):
         actor, critic, log_alpha = trainable
         alpha = jnp.exp(jax.lax.stop_gradient(log_alpha))  # [N]
         k_next, k_pi = keys[:, 0], keys[:, 1]
 
         # Critic targets with π_n's next action and α_n, for j = n and j = n + 1.
-        next_mean, next_log_std = actor_apply(jax.lax.stop_gradient(actor), batch.next_obs)
+        frozen_actor = jax.lax.stop_gradient(actor)
+        next_mean, next_log_std = actor_apply(frozen_actor, batch.next_obs)
         next_act, next_logp = jax.vmap(sample_action)(next_mean, next_log_std, k_next)
+        next_alpha = jnp.broadcast_to(alpha[:, None], next_logp.shape)  # [N, B]
+        if acting_next:
+            next_act, next_logp, next_alpha = successor_takes_over(frozen_actor, batch, next_act, next_logp,
+                                                                   next_alpha, alpha, k_next)
         q_target = critic_min(slot_params(target_critic), slot_data(batch.next_obs), slot_data(next_act))
-        y = soft_target(channel(slot_data(batch.rewards)), q_target, slot_data(next_logp), slot_data(alpha),
+        y = soft_target(channel(slot_data(batch.rewards)), q_target, slot_data(next_logp), slot_data(next_alpha),
                         slot_data(batch.terminal), channel(slot_data(batch.completed)), config.gamma, absorbing)
         q_slot_loss = jax.vmap(losses.twin_q_loss)(
             critic_twin(slot_params(critic), slot_data(batch.obs), slot_data(batch.action)), y)

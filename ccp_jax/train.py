@@ -20,9 +20,11 @@ from jax.experimental import multihost_utils
 from tqdm.auto import tqdm
 
 from ccp_jax import checkpoint, loggers, outputs
-from ccp_jax.config import AUTO, PRESETS, Config, ConfigError, Normaliser, PresetName, make_config
+from ccp_jax.config import AUTO, PRESETS, Config, ConfigError, NextAction, Normaliser, PresetName, make_config
 from ccp_jax.envs import make_env, user_env
 from ccp_jax.trainer import make_grid_train
+from ccp_jax.tp.primitives import primitives_config
+from ccp_jax.tp.trainer import make_tp_grid
 
 
 @dataclasses.dataclass
@@ -36,8 +38,20 @@ class Args:
     """Environment: maze (default), peg, pusher, or 'module.path:factory' returning an env that meets the contract (check it with envs_mjx.contract.check_env)."""
     rooms: Optional[int] = None
     """Number of maze rooms (stages); default 2."""
-    algo: Optional[Literal["csac", "naive", "sac"]] = None
-    """csac (default): cooperative agents; naive: independent agents; sac: one end-to-end agent."""
+    algo: Optional[Literal["csac", "naive", "sac", "tp"]] = None
+    """csac (default): cooperative agents; naive: independent agents; sac: one end-to-end agent; tp: transition policies between frozen primitives (needs --primitives)."""
+    primitives: Optional[Path] = None
+    """--algo tp: run folder of a finished --algo naive run (same env and rooms) whose agents are the frozen primitives."""
+    primitives_member: Optional[int] = None
+    """--algo tp: which grid member of the --primitives run supplies the primitives (default 0)."""
+    tp_max_steps: Optional[int] = None
+    """--algo tp: transition steps before termination is forced (default 100)."""
+    tp_init_episodes: Optional[int] = None
+    """--algo tp: deterministic primitive episodes that seed the permanent success states (default 100)."""
+    tp_prox_updates: Optional[int] = None
+    """--algo tp: proximity-predictor Adam steps per epoch (default 785)."""
+    tp_ppo_epochs: Optional[int] = None
+    tp_buffer_size: Optional[int] = None
     eta: Optional[tuple[str, ...]] = None
     """Grid of shared cooperative ratios, each in [0, 1] or 'auto' (running η*); default 0.1."""
     eta_per_agent: Optional[tuple[str, ...]] = None
@@ -71,6 +85,8 @@ class Args:
     norm_ema_rate: Optional[float] = None
     absorbing_stages: Optional[bool] = None
     """Critic n bootstraps the exact value 1/(1 − γ) once stage n is done (default on; off = the paper's literal rule)."""
+    next_action: Optional[NextAction] = None
+    """Whose action bootstraps critic targets at s': own (the paper's π_n, default) or acting (π_{n+1} once s' is in stage n+1)."""
     absorbing_success: Optional[bool] = None
     """Success bootstraps the absorbing value of all-ones rewards (default on; off = success ends with value 0)."""
     progress: bool = True
@@ -89,7 +105,8 @@ class Args:
 
 OVERRIDES = ("total_steps", "num_envs", "hidden", "batch_size", "buffer_size", "steps_per_epoch",
              "train_loops_per_epoch", "eval_episodes", "max_episode_steps", "gamma", "absorbing_stages",
-             "absorbing_success", "normaliser", "norm_floor", "norm_ema_rate")
+             "absorbing_success", "normaliser", "norm_floor", "norm_ema_rate", "next_action",
+             "primitives_member", "tp_max_steps", "tp_init_episodes", "tp_prox_updates", "tp_ppo_epochs", "tp_buffer_size")
 
 
 def parse_eta(text: str, field: str = "eta") -> float | str:
@@ -125,10 +142,15 @@ def config_from_args(args: Args, base: Optional[Config] = None) -> Config:
         explicit["etas"] = tuple((parse_eta(x),) for x in (args.eta or ("0.1",)))
     if args.seeds is not None or base is None:
         explicit["seeds"] = tuple(range(args.first_seed, args.first_seed + (args.seeds or 1)))
+    if args.primitives is not None:  # absolute, so a resumed run finds it from any folder
+        explicit["primitives"] = str(args.primitives.resolve())
     fields.update(explicit)
     if ":" in fields.get("env", ""):  # a user's env decides its own number of stages, once it is checked
         fields["rooms"] = user_env(fields["env"], check=True).num_stages
-    return make_config("paper", **fields)
+    config = make_config("paper", **fields)
+    if config.algo == "tp":  # the primitives' run must exist and match, before anything compiles
+        primitives_config(config)
+    return config
 
 
 def prepare_out(out: Optional[Path], config: Config) -> Path:
@@ -179,7 +201,7 @@ def run(config: Config, out: Path, progress: bool = True, resume: bool = False,
 def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_every: int,
            sinks: loggers.Loggers) -> dict:
     env = make_env(config)
-    trainer = make_grid_train(config, env)
+    trainer = make_tp_grid(config, env) if config.algo == "tp" else make_grid_train(config, env)
     eta, seed = config.grid_arrays()
     lead = jax.process_index() == 0  # with several hosts, one writes the files; all save checkpoints
     mngr = checkpoint.manager(out)

@@ -72,7 +72,8 @@ def make_train(config: Config, env: Env) -> Trainer:
                              value_range=1.0 / (1.0 - config.gamma))
         example = Transition(obs=jnp.zeros((obs_size,)), action=jnp.zeros((action_size,)),
                              rewards=jnp.zeros((num_channels,)), next_obs=jnp.zeros((obs_size,)),
-                             terminal=jnp.zeros(()), completed=jnp.zeros((num_channels,)))
+                             terminal=jnp.zeros(()), completed=jnp.zeros((num_channels,)),
+                             next_stage=jnp.zeros((), jnp.int32))
         buffer = replay.init_buffer(example, config.num_agents, capacity)
         env_state = jax.vmap(env.reset)(jax.random.split(k_env, config.num_envs))
         return TrainState(agents=agents, buffer=buffer, env_state=env_state, key=key,
@@ -117,8 +118,9 @@ class GridTrainer:
     replay buffers are updated in place.
     """
 
-    def __init__(self, config: Config, env: Env, devices: Sequence[jax.Device] | None = None):
-        trainer = make_train(config, env)
+    def __init__(self, config: Config, env: Env, devices: Sequence[jax.Device] | None = None,
+                 trainer: Trainer | None = None):
+        trainer = make_train(config, env) if trainer is None else trainer  # e.g. TP brings its own
         self.networks = trainer.networks
         self.devices = list(devices or jax.devices())
         self.grid_size = config.grid_size

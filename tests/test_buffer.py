@@ -13,7 +13,7 @@ def _batch(values, obs_size=2):
     e = v.shape[0]
     return Transition(obs=jnp.repeat(v[:, None], obs_size, 1), action=v[:, None], rewards=jnp.stack([v, -v], 1),
                       next_obs=jnp.repeat(v[:, None] + 0.5, obs_size, 1), terminal=jnp.zeros(e),
-                      completed=jnp.zeros((e, 2)))
+                      completed=jnp.zeros((e, 2)), next_stage=jnp.zeros(e, jnp.int32))
 
 
 def _empty(num_agents=3, capacity=4):

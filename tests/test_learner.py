@@ -24,7 +24,8 @@ def _setup(algo):
     batch = Transition(obs=jax.random.normal(k[0], (2, B, OBS)), action=jax.random.uniform(k[1], (2, B, ACT), minval=-1),
                        rewards=jax.random.uniform(k[2], (2, B, 2)), next_obs=jax.random.normal(k[3], (2, B, OBS)),
                        terminal=(jax.random.uniform(k[4], (2, B)) < 0.2).astype(jnp.float32),
-                       completed=jnp.zeros((2, B, 2)).at[:, :3, 0].set(1.0))
+                       completed=jnp.zeros((2, B, 2)).at[:, :3, 0].set(1.0),
+                       next_stage=jnp.zeros((2, B), jnp.int32).at[0, :3].set(1).at[1].set(1))
     return config, nets, agents, batch, jax.jit(make_learner(config, nets, ACT).update)
 
 
@@ -55,6 +56,33 @@ def test_critic_terms_use_pi_n_and_alpha_n_for_both_critics(csac):
     assert float(metrics.q_loss[0]) == pytest.approx(float(expected), rel=1e-4)
     np.testing.assert_allclose(metrics.alpha, [0.5, 2.0], rtol=1e-6)
     assert float(metrics.eta_star[1]) == 1.0 and 0.0 <= float(metrics.eta_star[0]) <= 1.0
+
+
+def test_acting_rule_bootstraps_with_the_successor_where_s_next_entered_its_stage(csac):
+    config, nets, agents, batch, paper_update = csac
+    config = config.replace(next_action="acting")
+    update = jax.jit(make_learner(config, nets, ACT).update)
+    key = jax.random.PRNGKey(3)
+    _, metrics = update(agents, batch, jnp.array([0.3, 1.0]), jnp.array([True, True]), key)
+    k_next = jax.random.split(key, (2, 2))[0, 0]
+    b0 = jax.tree.map(lambda x: x[0], batch)
+    own = sample_action(*nets.actor.apply(_agent(agents.actor, 0), b0.next_obs), k_next)
+    succ = sample_action(*nets.actor.apply(_agent(agents.actor, 1), b0.next_obs), jax.random.fold_in(k_next, 1))
+    crossed = b0.next_stage > 0  # the first 3 transitions of agent 0's batch entered stage 1
+    assert crossed.sum() == 3
+    a_next = jnp.where(crossed[:, None], succ[0], own[0])
+    logp_next = jnp.where(crossed, succ[1], own[1])
+    alpha = jnp.where(crossed, 2.0, 0.5)  # α_1 where π_1 acts at s'
+    expected = 0.0
+    for j in (0, 1):
+        q_next = jnp.min(nets.critic.apply(_agent(agents.target_critic, j), b0.next_obs, a_next), 0)
+        y = losses.soft_target(b0.rewards[:, j], q_next, logp_next, alpha, b0.terminal, b0.completed[:, j],
+                               config.gamma, 1.0 / (1.0 - config.gamma))
+        expected += losses.twin_q_loss(nets.critic.apply(_agent(agents.critic, j), b0.obs, b0.action), y)
+    assert float(metrics.q_loss[0]) == pytest.approx(float(expected), rel=1e-4)
+    # The paper's rule gives a different loss on the same batch.
+    _, paper = paper_update(agents, batch, jnp.array([0.3, 1.0]), jnp.array([True, True]), key)
+    assert abs(float(paper.q_loss[0]) - float(expected)) > 1e-3 * float(expected)
 
 
 def _changed(old, new, n):

@@ -69,7 +69,8 @@ def main(args: Args) -> dict:
     r = config.num_agents if args.algo != "sac" else 1
     batch = Transition(obs=jnp.ones((args.grid, n, args.batch, args.obs)), action=jnp.zeros((args.grid, n, args.batch, args.act)),
                        rewards=jnp.ones((args.grid, n, args.batch, r)), next_obs=jnp.ones((args.grid, n, args.batch, args.obs)),
-                       terminal=jnp.zeros((args.grid, n, args.batch)), completed=jnp.zeros((args.grid, n, args.batch, r)))
+                       terminal=jnp.zeros((args.grid, n, args.batch)), completed=jnp.zeros((args.grid, n, args.batch, r)),
+                       next_stage=jnp.zeros((args.grid, n, args.batch), jnp.int32))
     eta, ready = jnp.full((args.grid, n), 0.5), jnp.ones((args.grid, n), bool)
     step = jax.vmap(update, in_axes=(0, 0, 0, 0, None))
 
