@@ -30,35 +30,70 @@ def write_json(path: Path, obj: Any) -> None:
 
 
 def metric_rows(config: Config, epoch: int, metrics, wall_s: float) -> list[dict]:
-    """One metrics.jsonl row per grid member from an epoch's `EpochMetrics` (numpy, leading grid axis)."""
-    n_agents = config.num_agents
-    has_next = [config.algo == "csac" and n < n_agents - 1 for n in range(n_agents)]
+    """One metrics.jsonl row per grid member from an epoch's metrics (numpy, leading grid axis).
+
+    Every algorithm writes the same evaluation fields; the per-agent training
+    fields are SAC's (`EpochMetrics`) or TP's (`TPEpochMetrics`, see `_tp_fields`).
+    """
     rows = []
     for member, (eta, seed) in enumerate(config.grid):
-        t, ev = metrics.train, metrics.eval
-        per_agent = lambda x: [float(v) for v in x[member]]
-        rows.append({
+        ev = metrics.eval
+        row = {
             "member": member, "seed": seed, "eta": list(eta), "algo": config.algo, "epoch": epoch,
             "env_steps": int(metrics.env_steps[member]),
             "success_rate": float(ev.success_rate[member]),
             "eval_return": float(ev.eval_return[member]),
             "stage_reached_mean": float(ev.stage_reached_mean[member]),
-            "stage_fraction": per_agent(ev.stage_fraction),
+            "stage_fraction": [float(v) for v in ev.stage_fraction[member]],
             "eval_episode_length": float(ev.episode_length[member]),
             "train_success": float(metrics.train_success[member]),
             "train_episodes": int(metrics.train_episodes[member]),
-            "q_loss": per_agent(t.q_loss), "pi_loss": per_agent(t.pi_loss), "alpha": per_agent(t.alpha),
-            "log_prob": per_agent(t.log_prob), "q_min": per_agent(t.q_min), "q_max": per_agent(t.q_max),
-            # η* needs a next critic; it is undefined (null) for the last agent.
-            "eta_star": [float(v) if h else None for v, h in zip(t.eta_star[member], has_next)],
-            "eta_used": per_agent(t.eta_used), "range_own": per_agent(t.range_own),
-            "range_next": per_agent(t.range_next),
-            "pull_own": per_agent(metrics.pull_own), "pull_next": per_agent(metrics.pull_next),
-            "updated": per_agent(t.updated),
-            "buffer_fill": [int(v) / config.buffer_size for v in metrics.buffer_size[member]],
-            "epoch_wall_s": wall_s,
-        })
+        }
+        row.update(_tp_fields(metrics, member) if config.algo == "tp" else _sac_fields(config, metrics, member))
+        row["epoch_wall_s"] = wall_s
+        rows.append(row)
     return rows
+
+
+def _sac_fields(config: Config, metrics, member: int) -> dict:
+    n_agents = config.num_agents
+    has_next = [config.algo == "csac" and n < n_agents - 1 for n in range(n_agents)]
+    t = metrics.train
+    per_agent = lambda x: [float(v) for v in x[member]]
+    return {
+        "q_loss": per_agent(t.q_loss), "pi_loss": per_agent(t.pi_loss), "alpha": per_agent(t.alpha),
+        "log_prob": per_agent(t.log_prob), "q_min": per_agent(t.q_min), "q_max": per_agent(t.q_max),
+        # η* needs a next critic; it is undefined (null) for the last agent.
+        "eta_star": [float(v) if h else None for v, h in zip(t.eta_star[member], has_next)],
+        "eta_used": per_agent(t.eta_used), "range_own": per_agent(t.range_own),
+        "range_next": per_agent(t.range_next),
+        "pull_own": per_agent(metrics.pull_own), "pull_next": per_agent(metrics.pull_next),
+        "updated": per_agent(t.updated),
+        "buffer_fill": [int(v) / config.buffer_size for v in metrics.buffer_size[member]],
+    }
+
+
+def _tp_fields(metrics, member: int) -> dict:
+    """TP's training fields; lists have one entry per transition policy (into primitive 1 .. N−1)."""
+    tp = metrics.tp
+    per_policy = lambda x: [float(v) for v in x[member]]
+    won, lost = tp.rollout.won, tp.rollout.lost
+    return {
+        "tp_eval_transition_fraction": float(metrics.eval_transition_fraction[member]),
+        "tp_init_env_steps": int(metrics.init_env_steps[member]),
+        "tp_samples": per_policy(tp.rollout.samples), "tp_handovers": per_policy(tp.rollout.handovers),
+        "tp_forced": per_policy(tp.rollout.forced), "tp_won": per_policy(won), "tp_lost": per_policy(lost),
+        # Fraction of labelled transitions whose primitive then succeeded (null: none labelled this epoch).
+        "tp_handover_success": [float(w / (w + f)) if w + f > 0 else None for w, f in zip(won[member], lost[member])],
+        "prox_loss": per_policy(tp.predictor.loss), "prox_success_mean": per_policy(tp.predictor.success_mean),
+        "prox_failure_mean": per_policy(tp.predictor.failure_mean),
+        "pi_loss": per_policy(tp.ppo.pi_loss), "v_loss": per_policy(tp.ppo.v_loss),
+        "entropy": per_policy(tp.ppo.entropy), "approx_kl": per_policy(tp.ppo.approx_kl),
+        "clip_frac": per_policy(tp.ppo.clip_frac),
+        "tp_success_buffer": [int(v) for v in tp.success_buffer[member]],
+        "tp_failure_buffer": [int(v) for v in tp.failure_buffer[member]],
+        "tp_permanent_buffer": [int(v) for v in tp.permanent_buffer[member]],
+    }
 
 
 def append_rows(path: Path, rows: Iterable[dict]) -> None:

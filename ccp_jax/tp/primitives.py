@@ -1,0 +1,67 @@
+"""The frozen primitives of a TP run: the deterministic per-stage agents of a finished naive run.
+
+TP trains its primitives once and reuses them (Lee et al.; the CCP paper did
+the same): train them with `--algo naive`, then point `--primitives` at that
+run folder (`--primitives-member` picks the grid member). Everything here is
+checked before anything compiles and fails with a `ConfigError` on the field
+`primitives` (or `primitives_member`).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import jax
+
+from ccp_jax import checkpoint
+from ccp_jax.config import Config, ConfigError
+from ccp_jax.networks import Actor
+
+
+class Primitives(NamedTuple):
+    actor: Actor  # the naive run's actor module
+    params: Any  # its parameters, leaves [N, ...] (one agent per stage)
+
+
+def primitives_config(config: Config) -> Config:
+    """The naive run's config, checked against `config` (same env and stages, one agent per stage)."""
+    if config.primitives is None:
+        raise ConfigError("primitives", "--algo tp needs frozen primitives: train them first with --algo naive "
+                                        "(same env and rooms), then pass that run folder as --primitives DIR")
+    run_dir = Path(config.primitives)
+    try:
+        saved = Config.from_dict(json.loads((run_dir / "config.json").read_text()))
+    except FileNotFoundError:
+        raise ConfigError("primitives", f"{run_dir} holds no run (no config.json); train the primitives with "
+                                        "--algo naive --out DIR first") from None
+    except (json.JSONDecodeError, TypeError, ConfigError) as err:
+        raise ConfigError("primitives", f"{run_dir / 'config.json'} is unreadable: {err}") from None
+    if saved.algo != "naive":
+        raise ConfigError("primitives", f"{run_dir} is a {saved.algo!r} run; primitives come from an --algo naive run")
+    if saved.env != config.env or saved.num_stages != config.num_stages:
+        raise ConfigError("primitives", f"{run_dir} was trained on {saved.env} with {saved.num_stages} stages; "
+                                        f"this run is {config.env} with {config.num_stages} stages")
+    if not 0 <= config.primitives_member < saved.grid_size:
+        raise ConfigError("primitives_member", f"{run_dir} has members 0..{saved.grid_size - 1}, "
+                                               f"got {config.primitives_member}")
+    if not (run_dir / checkpoint.CHECKPOINT_DIR).is_dir():
+        raise ConfigError("primitives", f"{run_dir} has no checkpoints/ (an unfinished or copied-without-checkpoints run)")
+    return saved
+
+
+def load_primitives(config: Config) -> Primitives:
+    """The actor parameters of member `config.primitives_member` of the naive run in `config.primitives`."""
+    from ccp_jax.envs import make_env
+    from ccp_jax.trainer import make_grid_train
+
+    saved = primitives_config(config)
+    trainer = make_grid_train(saved, make_env(saved), jax.devices()[:1])
+    abstract = trainer.abstract_state(saved.grid_arrays()[1]).agents.actor
+    mngr = checkpoint.manager(Path(config.primitives))
+    try:
+        _, actors = checkpoint.restore(mngr, abstract, item="policy")
+    finally:
+        mngr.close()
+    params = jax.tree.map(lambda x: jax.device_get(x[config.primitives_member]), actors)
+    return Primitives(actor=trainer.networks.actor, params=params)
