@@ -46,7 +46,7 @@ def primitives_config(config: Config) -> Config:
         raise ConfigError("primitives_member", f"{run_dir} has members 0..{saved.grid_size - 1}, "
                                                f"got {config.primitives_member}")
     if not (run_dir / checkpoint.CHECKPOINT_DIR).is_dir():
-        raise ConfigError("primitives", f"{run_dir} has no checkpoints/ (an unfinished or copied-without-checkpoints run)")
+        raise ConfigError("primitives", f"{run_dir} has no checkpoints/ (unfinished, or copied without them)")
     return saved
 
 

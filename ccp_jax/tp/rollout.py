@@ -224,7 +224,8 @@ def make_evaluate(config: Config, env: Env, nets: TPNets) -> Callable:
             return (_where_done(state.done, state, nxt), mode, ret + live * nxt.reward, length + live,
                     moved + live * d.moving, t + 1)
 
-        state, _, ret, length, moved, _ = jax.lax.while_loop(cond, body, (state, mode, zeros, zeros, zeros, jnp.int32(0)))
+        carry = (state, mode, zeros, zeros, zeros, jnp.int32(0))
+        state, _, ret, length, moved, _ = jax.lax.while_loop(cond, body, carry)
         stage = state.info["stage"]
         reached = (stage[:, None] >= jnp.arange(num_stages)[None, :]).astype(jnp.float32)
         metrics = EvalMetrics(success_rate=state.metrics["success"].mean(), eval_return=ret.mean(),

@@ -107,7 +107,8 @@ def make_tp_train(config: Config, env: Env, primitives: Primitives) -> Trainer:
         permanent, init_steps = initial(k_init)
         # The normalisers start from the permanent success states, the only states known before training.
         valid = jnp.arange(config.tp_buffer_size)[None, :] < permanent.size[:, None]
-        norm = jax.vmap(norm_update, in_axes=(None, 0, 0))(norm_init(obs_size), permanent.obs, valid.astype(jnp.float32))
+        norm = jax.vmap(norm_update, in_axes=(None, 0, 0))(norm_init(obs_size), permanent.obs,
+                                                            valid.astype(jnp.float32))
         empty = buffer_init(num_k, config.tp_buffer_size, obs_size)
         agents = TransitionAgents(actor=actor, value=value, opt=jax.vmap(ppo_tx.init)((actor, value)), norm=norm)
         predictors = Predictors(params=prox, opt=jax.vmap(prox_tx.init)(prox),
