@@ -20,7 +20,7 @@ from matplotlib.figure import Figure
 
 from ccp_jax import outputs
 
-Group = tuple[str, str, tuple[float, ...]]  # (task, algo, eta vector)
+Group = tuple[str, str, tuple[float | str, ...]]  # (task, algo, eta vector; "auto" for a running η*)
 Series = tuple[np.ndarray, np.ndarray]  # (env_steps int64[E], values float64[E]) of one member
 
 
@@ -75,8 +75,14 @@ def group_label(group: Group, show_task: bool = False) -> str:
     label = algo
     if algo == "csac":
         coop = eta[:-1] or eta
-        label += " η=" + ",".join(f"{x:g}" for x in coop)
+        label += " η=" + ",".join(x if isinstance(x, str) else f"{x:g}" for x in coop)
     return f"{task} {label}" if show_task else label
+
+
+def _group_order(group: Group) -> tuple:
+    """Sort key: task, algo, then numeric ratios before "auto"."""
+    task, algo, eta = group
+    return task, algo, [(1, 0.0) if isinstance(x, str) else (0, x) for x in eta]
 
 
 def mean_std(series: Sequence[Series]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -104,7 +110,7 @@ def curves(groups: dict[Group, list[Series]], metric: str = "success_rate",
     if ax is None:
         ax = new_figure().add_subplot()
     show_task = len({g[0] for g in groups}) > 1
-    for group in sorted(groups):
+    for group in sorted(groups, key=_group_order):
         steps, mean, std, count = mean_std(groups[group])
         line, = ax.plot(steps, mean, label=f"{group_label(group, show_task)} (n={count.max(initial=0)})")
         ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2, linewidth=0)

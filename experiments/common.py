@@ -1,0 +1,147 @@
+"""What the experiment scripts share: budgets per scale, resumable grid runs, the paper's numbers.
+
+Each script trains its grids through `ccp_jax.train.run` into
+`OUT/<domain>/<name>/` (the usual config.json, metrics.jsonl, summary.json),
+so any run folder can also be plotted or resumed by hand. A finished folder is
+skipped, an interrupted one resumes from its last checkpoint; checkpoints are
+deleted once a run is finished (they hold the replay buffers: gigabytes).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import shutil
+import time
+from pathlib import Path
+from typing import Optional, Sequence
+
+import numpy as np
+
+from ccp_jax import checkpoint
+from ccp_jax.config import AUTO, Config, ConfigError, make_config
+
+# Domains of the paper: (env, rooms). Peg has two fixed stages.
+DOMAINS = {"maze2": ("maze", 2), "maze3": ("maze", 3), "maze4": ("maze", 4), "peg": ("peg", 2)}
+PAPER_ETAS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+
+# The paper's Table I (success, mean of the last 10 epochs, 5 seeds; TP 3 seeds). None: not reported.
+PAPER_TABLE1 = {
+    "csac": {
+        0.1: {"maze2": 1.00, "maze3": 0.62, "maze4": 0.00, "peg": 0.11},
+        0.2: {"maze2": 1.00, "maze3": 0.23, "maze4": 0.00, "peg": 0.11},
+        0.3: {"maze2": 1.00, "maze3": 0.07, "maze4": 0.00, "peg": 0.11},
+        0.4: {"maze2": 0.31, "maze3": 0.00, "maze4": 0.00, "peg": 0.17},
+        0.5: {"maze2": 0.05, "maze3": 0.06, "maze4": 0.00, "peg": 0.21},
+        0.6: {"maze2": 0.17, "maze3": 0.04, "maze4": 0.00, "peg": 0.34},
+        0.7: {"maze2": 0.42, "maze3": 0.40, "maze4": 0.17, "peg": 0.31},
+        0.8: {"maze2": 0.51, "maze3": 0.16, "maze4": 0.50, "peg": 0.37},
+        0.9: {"maze2": 0.06, "maze3": 0.21, "maze4": 0.79, "peg": 0.40},
+    },
+    "sac": {"maze2": 1.00, "maze3": 0.00, "maze4": 0.00, "peg": 0.11},
+    "naive": {"maze2": 0.54, "maze3": 0.20, "maze4": 0.14, "peg": 0.13},
+    "tp": {"maze2": 0.43, "maze3": 0.50, "maze4": 0.40, "peg": None},
+}
+# The paper's independent-ratio result on 3 rooms (10 seeds).
+PAPER_INDEPENDENT = {"best_pair": (0.1, 1.0), "best_pair_success": 0.78, "best_shared_success": 0.54}
+
+
+@dataclasses.dataclass(frozen=True)
+class Scale:
+    """A budget: preset, seeds, ratios and env steps per domain."""
+
+    preset: str
+    seeds: int
+    etas: tuple[float | str, ...]
+    total_steps: dict[str, int]
+    overrides: dict = dataclasses.field(default_factory=dict)
+
+    def config(self, domain: str, algo: str, etas: Sequence[Sequence[float | str]] = ((0.1,),),
+               seeds: Optional[int] = None, **changes) -> Config:
+        """The grid config of one (domain, algo) call at this scale."""
+        env, rooms = DOMAINS[domain]
+        return make_config(self.preset, env=env, rooms=rooms, algo=algo, etas=tuple(tuple(e) for e in etas),
+                           seeds=tuple(range(seeds or self.seeds)), total_steps=self.total_steps[domain],
+                           **{**self.overrides, **changes})
+
+
+SCALES = {
+    # The paper's budget (SPEC §3): [256, 256] nets, 1e6 buffers, 3M maze steps, 5 seeds.
+    "paper": Scale("paper", seeds=5, etas=PAPER_ETAS + (AUTO,),
+                   total_steps={"maze2": 3_000_000, "maze3": 3_000_000, "maze4": 3_000_000, "peg": 3_000_000}),
+    # What a 2-core CPU affords (measured, see experiments/README.md): SPEC §7's [64, 64] yardstick
+    # settings, 3 seeds, five of the nine ratios, budgets where the 2-room maze is learnt.
+    "cpu": Scale("small", seeds=3, etas=(0.1, 0.3, 0.5, 0.7, 0.9, AUTO),
+                 total_steps={"maze2": 150_000, "maze3": 300_000, "maze4": 400_000, "peg": 100_000}),
+    # Seconds: checks that a script runs end to end (used by the tests).
+    "smoke": Scale("tiny", seeds=2, etas=(0.1, AUTO),
+                   total_steps={"maze2": 400, "maze3": 400, "maze4": 400, "peg": 200}),
+}
+
+
+def run_grid(config: Config, out: Path, checkpoint_every: int = 10, log=print) -> dict:
+    """Trains `config` in `out`, or resumes it, or returns its summary if it is finished.
+
+    A folder holding a different config is refused (ConfigError naming the field), never overwritten.
+    """
+    from ccp_jax import train  # heavy (jax): imported when a grid actually runs
+
+    summary_path, config_path = out / "summary.json", out / "config.json"
+    if config_path.exists():
+        saved = Config.from_dict(read_json(config_path))
+        for field in dataclasses.fields(Config):
+            if getattr(saved, field.name) != getattr(config, field.name):
+                raise ConfigError(field.name, f"{out} holds a run with {getattr(saved, field.name)!r}, this "
+                                              f"experiment needs {getattr(config, field.name)!r}; use another --out")
+        if summary_path.exists():
+            log(f"done already: {out}")
+            return read_json(summary_path)
+    resume = False
+    if config_path.exists():
+        mngr = checkpoint.manager(out)
+        resume = mngr.latest_step() is not None
+        mngr.close()
+    if not resume:  # nothing to resume from: (re)start the run
+        for name in ("config.json", "metrics.jsonl"):
+            (out / name).unlink(missing_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
+    log(f"{'resuming' if resume else 'training'} {config.algo} on {config.env}"
+        f"{'-' + str(config.rooms) if config.env == 'maze' else ''} x{config.grid_size} -> {out}")
+    start = time.time()
+    summary = train.run(config, out, progress=True, resume=resume, checkpoint_every=checkpoint_every,
+                        tensorboard=False)
+    shutil.rmtree(out / "checkpoints", ignore_errors=True)
+    log(f"finished {out} in {time.time() - start:.0f} s")
+    return summary
+
+
+def final_success(summary: dict) -> dict[tuple, list[float]]:
+    """{eta vector: [final success per seed]} of a summary."""
+    by_eta: dict[tuple, list[float]] = {}
+    for m in summary["members"]:
+        by_eta.setdefault(tuple(m["eta"]), []).append(m["final_success"])
+    return by_eta
+
+
+def mean_std(values: Sequence[float]) -> str:
+    """'0.67 ± 0.47' (population std over seeds), or '–' for no values."""
+    if not values:
+        return "–"
+    return f"{np.mean(values):.2f} ± {np.std(values):.2f}"
+
+
+def eta_label(eta: float | str) -> str:
+    return eta if isinstance(eta, str) else f"{eta:g}"
+
+
+def fmt(x: Optional[float]) -> str:
+    return "–" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.2f}"
+
+
+def read_json(path: Path) -> dict:
+    return json.loads(Path(path).read_text())
+
+
+def write_text(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(text)

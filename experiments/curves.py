@@ -1,0 +1,88 @@
+"""The paper's success-curve figures: per domain, CSAC at its best ratio against SAC and Naive.
+
+    python experiments/curves.py --scale cpu [--domains maze2 maze3] [--with-auto]
+
+The curves come from the same runs as Table I (`table1.py`, same scale and
+folder): missing runs are trained (or resumed) first, so either script can be
+run first. The best ratio of a domain is the one with the highest mean final
+success over seeds (ties: the smaller η). Writes curves_<domain>.png and one
+figure with every domain side by side (curves.png) into the results folder.
+"""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Literal, Optional
+
+import numpy as np
+import tyro
+
+from ccp_jax import plot
+from ccp_jax.config import AUTO
+from common import DOMAINS, final_success, read_json
+from table1 import run_dir, train_domain
+
+TITLES = {"maze2": "2-room maze", "maze3": "3-room maze", "maze4": "4-room maze", "peg": "peg in hole"}
+
+
+@dataclasses.dataclass
+class Args:
+    scale: Literal["cpu", "paper", "smoke"] = "cpu"
+    domains: tuple[str, ...] = ("maze2", "maze3", "maze4", "peg")
+    algos: tuple[str, ...] = ("csac", "sac", "naive")
+    with_auto: bool = True
+    """Also draw CSAC with η = auto (issue 9) next to the best swept ratio."""
+    out: Optional[Path] = None
+    """Results folder shared with table1.py (default experiments/results/table1_<scale>)."""
+    plot_only: bool = False
+    """Only draw from the runs already finished; never train."""
+
+
+def best_eta(summary: dict) -> tuple:
+    """The swept ratio vector with the best mean final success (auto excluded)."""
+    swept = {eta: np.mean(v) for eta, v in final_success(summary).items() if AUTO not in eta}
+    return max(sorted(swept), key=lambda eta: swept[eta])
+
+
+def domain_groups(out: Path, domain: str, algos: tuple[str, ...], with_auto: bool) -> dict:
+    """Curve groups to draw for one domain: the best CSAC ratio (and auto), then each baseline."""
+    groups = {}
+    for algo in algos:
+        folder = run_dir(out, domain, algo)
+        if not (folder / "summary.json").exists():
+            continue
+        loaded = plot.load_curves([folder])
+        if algo == "csac":
+            best = best_eta(read_json(folder / "summary.json"))
+            loaded = {g: s for g, s in loaded.items() if g[2] == best or (with_auto and AUTO in g[2])}
+        groups.update(loaded)
+    return groups
+
+
+def main(args: Args) -> list[Path]:
+    unknown = [d for d in args.domains if d not in DOMAINS]
+    if unknown:
+        raise SystemExit(f"error: domains: unknown {unknown}; choose from {tuple(DOMAINS)}")
+    out = args.out or Path("experiments/results") / f"table1_{args.scale}"
+    if not args.plot_only:
+        for domain in args.domains:
+            train_domain(args.scale, domain, args.algos, out)
+    drawn = {d: g for d in args.domains if (g := domain_groups(out, d, args.algos, args.with_auto))}
+    written = []
+    for domain, groups in drawn.items():
+        path = out / f"curves_{domain}.png"
+        plot.curves(groups, title=TITLES[domain]).savefig(path)
+        written.append(path)
+    if drawn:
+        fig = plot.new_figure(4.2 * len(drawn), 3.4)
+        for i, (domain, groups) in enumerate(drawn.items()):
+            plot.curves(groups, ax=fig.add_subplot(1, len(drawn), i + 1), title=TITLES[domain])
+        fig.savefig(out / "curves.png")
+        written.append(out / "curves.png")
+    for path in written:
+        print(f"wrote {path}")
+    return written
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))

@@ -1,0 +1,148 @@
+"""Table I of the paper: success of CSAC for each shared ratio η, of SAC and of Naive, per domain.
+
+    python experiments/table1.py --scale cpu                    # reduced budget (see experiments/README.md)
+    python experiments/table1.py --scale paper --domains maze3  # the paper's budget for one domain
+    python experiments/table1.py --scale cpu --table-only       # rebuild the table from finished runs
+
+Each (domain, algorithm) is one grid call, ratios × seeds vmapped, written to
+OUT/<domain>/<algo>/ (config.json, metrics.jsonl, summary.json). Runs are done
+domain by domain and the table is rewritten after each, so an interrupted
+sweep leaves a partial table and resumes where it stopped. Success is the
+paper's: mean evaluation success over the last 10 epochs, mean ± std over seeds.
+
+The CSAC grid also holds `auto` members (η* from running critic ranges,
+issue 9), trained with the same seeds as the swept ratios.
+"""
+from __future__ import annotations
+
+import csv
+import dataclasses
+import io
+from pathlib import Path
+from typing import Literal, Optional
+
+import numpy as np
+import tyro
+
+from ccp_jax.config import AUTO
+from common import (DOMAINS, PAPER_TABLE1, SCALES, eta_label, final_success, fmt, mean_std, read_json, run_grid,
+                    write_text)
+
+BASELINES = ("sac", "naive")
+
+
+@dataclasses.dataclass
+class Args:
+    scale: Literal["cpu", "paper", "smoke"] = "cpu"
+    """Budget: cpu (hours on a 2-core CPU), paper (3M steps, 5 seeds; needs a GPU), smoke (seconds)."""
+    domains: tuple[str, ...] = ("maze2", "maze3", "maze4", "peg")
+    algos: tuple[str, ...] = ("csac", "sac", "naive")
+    out: Optional[Path] = None
+    """Results folder (default experiments/results/table1_<scale>)."""
+    table_only: bool = False
+    """Only rebuild table.md / table.csv from the runs already finished."""
+
+
+def run_dir(out: Path, domain: str, algo: str) -> Path:
+    return out / domain / algo
+
+
+def train_domain(scale_name: str, domain: str, algos: tuple[str, ...], out: Path) -> None:
+    """Trains (or resumes, or skips) every algorithm's grid of one domain."""
+    scale = SCALES[scale_name]
+    for algo in algos:
+        etas = [(e,) for e in scale.etas] if algo == "csac" else [(1.0,)]
+        run_grid(scale.config(domain, algo, etas=etas), run_dir(out, domain, algo))
+
+
+def collect(out: Path, domains: tuple[str, ...], algos: tuple[str, ...]) -> list[dict]:
+    """One row per (algo, eta, domain) from the finished runs: seeds' final successes and first successes."""
+    rows = []
+    for domain in domains:
+        for algo in algos:
+            path = run_dir(out, domain, algo) / "summary.json"
+            if not path.exists():
+                continue
+            summary = read_json(path)
+            firsts: dict[tuple, list] = {}
+            for m in summary["members"]:
+                firsts.setdefault(tuple(m["eta"]), []).append(m["first_success_env_steps"])
+            for eta, values in final_success(summary).items():
+                key = eta[0] if algo == "csac" else None
+                reached = [f for f in firsts[eta] if f is not None]
+                rows.append(dict(algo=algo, eta=key, domain=domain, success=values,
+                                 first_success=reached, seeds_succeeded=len(reached),
+                                 env_steps=summary["members"][0]["env_steps"], wall_s=summary.get("wall_s")))
+    return rows
+
+
+def paper_value(algo: str, eta, domain: str) -> Optional[float]:
+    if algo == "csac":
+        return PAPER_TABLE1["csac"].get(eta, {}).get(domain) if eta != AUTO else None
+    return PAPER_TABLE1.get(algo, {}).get(domain)
+
+
+def markdown(rows: list[dict], domains: tuple[str, ...], scale_name: str) -> str:
+    """The paper's layout: a row per method (and ratio), a column per domain, 'ours (paper)' in each cell."""
+    methods = sorted({(r["algo"], r["eta"]) for r in rows},
+                     key=lambda m: (["csac", "sac", "naive", "tp"].index(m[0]),
+                                    2.0 if m[1] == AUTO else (m[1] or 0.0)))
+    cell = {(r["algo"], r["eta"], r["domain"]): r for r in rows}
+    header = "| method | η | " + " | ".join(domains) + " |"
+    lines = [header, "|" + "---|" * (len(domains) + 2)]
+    for algo, eta in methods:
+        cells = []
+        for domain in domains:
+            r = cell.get((algo, eta, domain))
+            ours = mean_std(r["success"]) if r else "not run"
+            cells.append(f"{ours} ({fmt(paper_value(algo, eta, domain))})")
+        name = {"csac": "CSAC", "sac": "SAC", "naive": "Naive", "tp": "TP"}[algo]
+        lines.append(f"| {name} | {eta_label(eta) if algo == 'csac' else ''} | " + " | ".join(cells) + " |")
+    budgets = {r["domain"]: r["env_steps"] for r in rows}
+    seeds = max((len(r["success"]) for r in rows), default=0)
+    note = (f"\nScale `{scale_name}`: {seeds} seeds; env steps per run "
+            + ", ".join(f"{d} {budgets[d]:,}" for d in domains if d in budgets)
+            + ". Cells: ours, mean ± std over seeds of the final success (last 10 epochs' evaluation); "
+              "the paper's Table I in parentheses (5 seeds, 3M steps; '–': not reported).\n")
+    return "\n".join(lines) + "\n" + note
+
+
+def csv_text(rows: list[dict]) -> str:
+    buf = io.StringIO()
+    writer = csv.writer(buf)
+    writer.writerow(["algo", "eta", "domain", "seeds", "success_mean", "success_std", "success_per_seed",
+                     "seeds_succeeded", "first_success_mean_env_steps", "paper", "env_steps", "wall_s"])
+    for r in rows:
+        first = f"{np.mean(r['first_success']):.0f}" if r["first_success"] else ""
+        writer.writerow([r["algo"], "" if r["eta"] is None else eta_label(r["eta"]), r["domain"], len(r["success"]),
+                         f"{np.mean(r['success']):.3f}", f"{np.std(r['success']):.3f}",
+                         " ".join(f"{v:.2f}" for v in r["success"]), r["seeds_succeeded"], first,
+                         fmt(paper_value(r["algo"], r["eta"], r["domain"])), r["env_steps"],
+                         "" if r["wall_s"] is None else f"{r['wall_s']:.0f}"])
+    return buf.getvalue()
+
+
+def write_table(out: Path, domains: tuple[str, ...], algos: tuple[str, ...], scale_name: str) -> str:
+    rows = collect(out, domains, algos)
+    text = markdown(rows, tuple(d for d in domains if any(r["domain"] == d for r in rows)), scale_name)
+    write_text(out / "table.md", text)
+    write_text(out / "table.csv", csv_text(rows))
+    return text
+
+
+def main(args: Args) -> str:
+    unknown = [d for d in args.domains if d not in DOMAINS]
+    if unknown:
+        raise SystemExit(f"error: domains: unknown {unknown}; choose from {tuple(DOMAINS)}")
+    out = args.out or Path("experiments/results") / f"table1_{args.scale}"
+    if not args.table_only:
+        for domain in args.domains:
+            train_domain(args.scale, domain, args.algos, out)
+            write_table(out, args.domains, args.algos, args.scale)
+    text = write_table(out, args.domains, args.algos, args.scale)
+    print(text)
+    return text
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))

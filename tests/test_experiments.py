@@ -1,0 +1,89 @@
+"""The experiment scripts' bookkeeping on hand-made run folders: tables, best ratio, resume rules, figures."""
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+
+import common  # noqa: E402
+import curves  # noqa: E402
+import independent_ratios  # noqa: E402
+import table1  # noqa: E402
+from ccp_jax.config import ConfigError  # noqa: E402
+
+
+def _fake_run(folder: Path, config, success_by_member: dict[int, list[float]]) -> None:
+    """config.json, metrics.jsonl and summary.json as a finished run writes them, with given eval successes."""
+    from ccp_jax import outputs
+
+    folder.mkdir(parents=True)
+    outputs.write_json(folder / "config.json", config.to_dict())
+    rows = []
+    for member, (eta, seed) in enumerate(config.grid):
+        for epoch, s in enumerate(success_by_member[member], start=1):
+            rows.append(dict(member=member, seed=seed, eta=list(eta), algo=config.algo, epoch=epoch,
+                             env_steps=epoch * config.steps_per_epoch, success_rate=s, eval_return=10.0 * s))
+    outputs.write_rows(folder / "metrics.jsonl", rows)
+    outputs.write_json(folder / "summary.json", outputs.summarise(config, rows, wall_s=1.0))
+
+
+@pytest.fixture()
+def maze2_runs(tmp_path):
+    scale = common.SCALES["smoke"]
+    out = tmp_path / "table1"
+    csac = scale.config("maze2", "csac", etas=[(0.1,), ("auto",)])  # members: (0.1, s0), (0.1, s1), (auto, s0), (auto, s1)
+    _fake_run(out / "maze2" / "csac", csac, {0: [0, 1, 1], 1: [0, 0, 0], 2: [1, 1, 1], 3: [0, 1, 1]})
+    sac = scale.config("maze2", "sac", etas=[(1.0,)])
+    _fake_run(out / "maze2" / "sac", sac, {0: [0, 0, 0], 1: [0, 0, 1]})
+    return out
+
+
+def test_table_cells_are_mean_std_over_seeds_next_to_the_paper(maze2_runs):
+    text = table1.write_table(maze2_runs, ("maze2",), ("csac", "sac", "naive"), "smoke")
+    lines = text.splitlines()
+    # Final success is the mean over the (three) logged epochs: seed 0 → 2/3, seed 1 → 0.
+    assert "| CSAC | 0.1 | 0.33 ± 0.33 (1.00) |" in lines
+    assert "| CSAC | auto | 0.83 ± 0.17 (–) |" in lines
+    assert "| SAC |  | 0.17 ± 0.17 (1.00) |" in lines
+    assert not any(line.startswith("| Naive") for line in lines)  # not run: no row
+    csv_rows = (maze2_runs / "table.csv").read_text().splitlines()
+    assert csv_rows[0].startswith("algo,eta,domain,seeds,success_mean")
+    row = next(r for r in csv_rows if r.startswith("csac,0.1,maze2"))
+    assert ",0.333,0.333,0.67 0.00,1," in row  # per-seed values and seeds that ever succeeded
+
+
+def test_best_ratio_ignores_auto_and_curves_are_drawn(maze2_runs):
+    summary = common.read_json(maze2_runs / "maze2" / "csac" / "summary.json")
+    assert curves.best_eta(summary) == (0.1, 1.0)
+    groups = curves.domain_groups(maze2_runs, "maze2", ("csac", "sac"), with_auto=True)
+    assert {(g[1], g[2]) for g in groups} == {("csac", (0.1, 1.0)), ("csac", ("auto", 1.0)), ("sac", (1.0,))}
+    written = curves.main(curves.Args(scale="smoke", domains=("maze2",), algos=("csac", "sac"), out=maze2_runs,
+                                      plot_only=True))
+    assert [p.name for p in written] == ["curves_maze2.png", "curves.png"]
+    assert all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in written)
+
+
+def test_run_grid_skips_a_finished_run_and_refuses_another_config(maze2_runs):
+    folder = maze2_runs / "maze2" / "csac"
+    config = common.Config.from_dict(json.loads((folder / "config.json").read_text()))
+    before = (folder / "metrics.jsonl").read_bytes()
+    summary = common.run_grid(config, folder, log=lambda *_: None)
+    assert summary == common.read_json(folder / "summary.json")
+    with pytest.raises(ConfigError, match="^total_steps: .* holds a run with 400"):
+        common.run_grid(config.replace(total_steps=800), folder, log=lambda *_: None)
+    assert (folder / "metrics.jsonl").read_bytes() == before
+
+
+def test_independent_ratio_report_names_the_best_pair(tmp_path):
+    config = independent_ratios.pairs_config("smoke")
+    assert [eta for eta, _ in config.grid] == [(0.1, 0.1, 1.0), (0.1, 1.0, 1.0), (1.0, 0.1, 1.0), (1.0, 1.0, 1.0)]
+    folder = tmp_path / "pairs"
+    _fake_run(folder, config, {0: [0, 0], 1: [1, 1], 2: [0, 1], 3: [0, 0]})
+    text = independent_ratios.report(common.read_json(folder / "summary.json"), None, "smoke", tmp_path)
+    assert "| best pair (η1, η2) | (0.1, 1.0): 1.00 ± 0.00 | (0.1, 1.0): 0.78 |" in text
+    assert "| 1 | 0.50 ± 0.00 | 0.00 ± 0.00 |" in text
+    eta1, eta2, values = independent_ratios.plot.ratio_grid([folder])
+    np.testing.assert_allclose(values, [[0.0, 1.0], [0.5, 0.0]])
