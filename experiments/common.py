@@ -79,6 +79,14 @@ SCALES = {
 }
 
 
+def results_folder(out: Optional[Path], name: str, scale: str, domains: Sequence[str] = ()) -> Path:
+    """`out`, or experiments/results/<name>_<scale>; exits with a message naming an unknown domain."""
+    unknown = [d for d in domains if d not in DOMAINS]
+    if unknown:
+        raise SystemExit(f"error: domains: unknown {unknown}; choose from {tuple(DOMAINS)}")
+    return out or Path("experiments/results") / f"{name}_{scale}"
+
+
 def run_grid(config: Config, out: Path, checkpoint_every: int = 10, log=print) -> dict:
     """Trains `config` in `out`, or resumes it, or returns its summary if it is finished.
 

@@ -19,7 +19,7 @@ import tyro
 
 from ccp_jax import plot
 from ccp_jax.config import AUTO
-from common import DOMAINS, final_success, read_json
+from common import final_success, read_json, results_folder
 from table1 import run_dir, train_domain
 
 TITLES = {"maze2": "2-room maze", "maze3": "3-room maze", "maze4": "4-room maze", "peg": "peg in hole"}
@@ -60,10 +60,7 @@ def domain_groups(out: Path, domain: str, algos: tuple[str, ...], with_auto: boo
 
 
 def main(args: Args) -> list[Path]:
-    unknown = [d for d in args.domains if d not in DOMAINS]
-    if unknown:
-        raise SystemExit(f"error: domains: unknown {unknown}; choose from {tuple(DOMAINS)}")
-    out = args.out or Path("experiments/results") / f"table1_{args.scale}"
+    out = results_folder(args.out, "table1", args.scale, args.domains)
     if not args.plot_only:
         for domain in args.domains:
             train_domain(args.scale, domain, args.algos, out)

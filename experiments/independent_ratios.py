@@ -19,7 +19,8 @@ import numpy as np
 import tyro
 
 from ccp_jax import plot
-from common import PAPER_INDEPENDENT, SCALES, final_success, fmt, mean_std, read_json, run_grid, write_text
+from common import (PAPER_INDEPENDENT, SCALES, final_success, fmt, mean_std, read_json, results_folder, run_grid,
+                    write_text)
 
 # Ratio values per axis: the paper's figure spans 0.1 … 1.0; the CPU budget affords three.
 AXES = {"paper": tuple(round(0.1 * k, 1) for k in range(1, 11)), "cpu": (0.1, 0.5, 1.0), "smoke": (0.1, 1.0)}
@@ -71,8 +72,8 @@ def report(summary: dict, shared: Optional[dict], scale_name: str, out: Path) ->
 
 
 def main(args: Args) -> str:
-    out = args.out or Path("experiments/results") / f"independent_ratios_{args.scale}"
-    table1_out = args.table1_out or Path("experiments/results") / f"table1_{args.scale}"
+    out = results_folder(args.out, "independent_ratios", args.scale)
+    table1_out = results_folder(args.table1_out, "table1", args.scale)
     folder = out / "maze3" / "csac_pairs"
     if not args.table_only:
         run_grid(pairs_config(args.scale), folder)

@@ -25,8 +25,8 @@ import numpy as np
 import tyro
 
 from ccp_jax.config import AUTO
-from common import (DOMAINS, PAPER_TABLE1, SCALES, eta_label, final_success, fmt, mean_std, read_json, run_grid,
-                    write_text)
+from common import (PAPER_TABLE1, SCALES, eta_label, final_success, fmt, mean_std, read_json, results_folder,
+                    run_grid, write_text)
 
 BASELINES = ("sac", "naive")
 
@@ -131,10 +131,7 @@ def write_table(out: Path, domains: tuple[str, ...], algos: tuple[str, ...], sca
 
 
 def main(args: Args) -> str:
-    unknown = [d for d in args.domains if d not in DOMAINS]
-    if unknown:
-        raise SystemExit(f"error: domains: unknown {unknown}; choose from {tuple(DOMAINS)}")
-    out = args.out or Path("experiments/results") / f"table1_{args.scale}"
+    out = results_folder(args.out, "table1", args.scale, args.domains)
     if not args.table_only:
         for domain in args.domains:
             train_domain(args.scale, domain, args.algos, out)

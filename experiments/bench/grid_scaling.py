@@ -28,23 +28,16 @@ updates and evaluation (by difference).
 from __future__ import annotations
 
 import dataclasses
-import statistics
 import sys
-import time
 from pathlib import Path
-from unittest import mock
 
 import jax
-import jax.numpy as jnp
 import tyro
 
-import ccp_jax.trainer as trainer_module
 from ccp_jax.config import make_config
-from ccp_jax.envs import make_env
-from ccp_jax.trainer import make_grid_train
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from vs_brax import _no_eval  # noqa: E402
+from timed import TimedGrid  # noqa: E402
 
 
 @dataclasses.dataclass
@@ -75,56 +68,17 @@ def config_for(args: Args, n_agents: int, grid: int, **overrides):
     return make_config(args.preset, **{**fields, **overrides})
 
 
-class Run:
-    """The grid trainer of `config`, built and compiled; `epoch()` runs and times one `train_step`."""
-
-    def __init__(self, config, evaluate: bool = True):
-        env = make_env(config)
-        if evaluate:
-            self.trainer = make_grid_train(config, env)
-        else:
-            with mock.patch.object(trainer_module, "make_evaluate", _no_eval):
-                self.trainer = make_grid_train(config, env)
-        self.eta, seeds = (jnp.asarray(x) for x in config.grid_arrays())
-        self.state = jax.block_until_ready(self.trainer.init(seeds))
-        self.times: list[float] = []
-        before = avals(self.state)
-        self.first = self.epoch()  # compiles
-        # A state whose types change in the first epoch (e.g. a weak-typed leaf from init) makes the second
-        # call compile again; name such leaves, and keep that second compile out of the timed epochs too.
-        self.retraced = [f"{a[0]}: {a[1:]} -> {b[1:]}" for a, b in zip(before, avals(self.state)) if a != b]
-        self.second = self.epoch() if self.retraced else 0.0
-        self.times.clear()
-
-    def epoch(self) -> float:
-        t = time.perf_counter()
-        self.state, metrics = self.trainer.train_step(self.state, self.eta)
-        jax.block_until_ready((self.state, metrics))
-        self.times.append(time.perf_counter() - t)
-        return self.times[-1]
-
-    @property
-    def median(self) -> float:
-        return statistics.median(self.times)
-
-
-def avals(tree) -> list[tuple]:
-    """(path, shape, dtype, weak_type) of every leaf: what jit's cache keys on."""
-    return [(jax.tree_util.keystr(p), x.shape, x.dtype, getattr(x, "weak_type", False))
-            for p, x in jax.tree_util.tree_flatten_with_path(tree)[0]]
-
-
-def build(args: Args, n_agents: int, grid: int) -> dict[str, Run]:
-    runs = {"full": Run(config_for(args, n_agents, grid))}
+def build(args: Args, n_agents: int, grid: int) -> dict[str, TimedGrid]:
+    runs = {"full": TimedGrid(config_for(args, n_agents, grid))}
     if args.breakdown:
-        runs["no_eval"] = Run(config_for(args, n_agents, grid), evaluate=False)
-        runs["collect"] = Run(config_for(args, n_agents, grid, train_loops_per_epoch=1), evaluate=False)
+        runs["no_eval"] = TimedGrid(config_for(args, n_agents, grid), evaluate=False)
+        runs["collect"] = TimedGrid(config_for(args, n_agents, grid, train_loops_per_epoch=1), evaluate=False)
     return runs
 
 
-def row_of(n_agents: int, grid: int, runs: dict[str, Run]) -> dict:
+def row_of(n_agents: int, grid: int, runs: dict[str, TimedGrid]) -> dict:
     full = runs["full"]
-    row = {"agents": n_agents, "grid": grid, "epoch_s": full.median, "compile_s": full.first - full.median,
+    row = {"agents": n_agents, "grid": grid, "epoch_s": full.median, "compile_s": full.compile_s,
            "epochs": full.times, "recompiled_s": full.second - full.median if full.retraced else 0.0,
            "retraced": full.retraced}
     if "collect" in runs:

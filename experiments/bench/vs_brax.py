@@ -38,22 +38,17 @@ import dataclasses
 import functools
 import statistics
 import sys
-import time
 from pathlib import Path
-from unittest import mock
 
 import jax
-import jax.numpy as jnp
 import tyro
 from brax.envs.base import Env, State
 
-import ccp_jax.trainer as trainer_module
-from ccp_jax.collect import make_evaluate
 from ccp_jax.config import make_config
-from ccp_jax.trainer import make_grid_train
 from envs_mjx.maze import Maze
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from timed import TimedGrid  # noqa: E402
 from update_speed import matmul_roof  # noqa: E402
 
 
@@ -165,48 +160,14 @@ def run_brax(args: Args, seed: int, after_epoch=lambda: None) -> dict:
     return {"epoch_s": times, "compile_s": times[0] - statistics.median(times[1:])}
 
 
-def _no_eval(config, env, actor):
-    """A stand-in for `make_evaluate` whose `evaluate` returns zeros shaped like the real one's metrics.
-
-    Patched into `ccp_jax.trainer` to time an epoch without its evaluation (the real evaluation is only
-    traced abstractly, for its output shapes; it is not part of the compiled program).
-    """
-    real = make_evaluate(config, env, actor)
-
-    def evaluate(*args):
-        return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(real, *args))
-    return evaluate
-
-
-class OurRun:
-    """Our grid trainer with one member and one agent; `epoch()` runs and times one `train_step`."""
-
-    def __init__(self, args: Args, seed: int, evaluate: bool):
-        config = make_config(
-            "paper", rooms=args.rooms, algo="sac", hidden=args.hidden, batch_size=args.batch,
-            num_envs=args.num_envs, steps_per_epoch=args.epoch_steps, train_loops_per_epoch=updates_per_epoch(args),
-            total_steps=1000 * args.epoch_steps, buffer_size=args.buffer, start_steps=args.start_steps,
-            eval_episodes=args.eval_episodes, max_episode_steps=args.episode_length, seeds=(seed,))
-        env = Maze(rooms=args.rooms, episode_length=args.episode_length)
-        if evaluate:
-            self.trainer = make_grid_train(config, env)
-        else:
-            with mock.patch.object(trainer_module, "make_evaluate", _no_eval):
-                self.trainer = make_grid_train(config, env)
-        self.eta, seeds = (jnp.asarray(x) for x in config.grid_arrays())
-        self.state = jax.block_until_ready(self.trainer.init(seeds))
-        self.times: list[float] = []
-        first = self.epoch()  # compiles
-        self.times.clear()
-        self.compile_s = first - min(self.epoch(), self.epoch())
-        self.times.clear()
-
-    def epoch(self) -> float:
-        t = time.perf_counter()
-        self.state, metrics = self.trainer.train_step(self.state, self.eta)
-        jax.block_until_ready((self.state, metrics))
-        self.times.append(time.perf_counter() - t)
-        return self.times[-1]
+def our_run(args: Args, seed: int, evaluate: bool) -> TimedGrid:
+    """Our grid trainer with one member and one agent (`algo="sac"`) on the same work as brax's."""
+    config = make_config(
+        "paper", rooms=args.rooms, algo="sac", hidden=args.hidden, batch_size=args.batch,
+        num_envs=args.num_envs, steps_per_epoch=args.epoch_steps, train_loops_per_epoch=updates_per_epoch(args),
+        total_steps=1000 * args.epoch_steps, buffer_size=args.buffer, start_steps=args.start_steps,
+        eval_episodes=args.eval_episodes, max_episode_steps=args.episode_length, seeds=(seed,))
+    return TimedGrid(config, Maze(rooms=args.rooms, episode_length=args.episode_length), evaluate)
 
 
 def main(args: Args) -> dict:
@@ -214,7 +175,7 @@ def main(args: Args) -> dict:
     print(f"maze rooms={args.rooms}, hidden={args.hidden}, batch={args.batch}, num_envs={args.num_envs}, "
           f"{args.epoch_steps} env steps + {updates} updates per epoch, {args.rounds} brax trainings × "
           f"{args.epochs} timed epochs, each followed by one epoch of each of ours; devices={jax.devices()}")
-    ours = {"ours": OurRun(args, 0, evaluate=True), "ours_no_eval": OurRun(args, 0, evaluate=False)}
+    ours = {"ours": our_run(args, 0, evaluate=True), "ours_no_eval": our_run(args, 0, evaluate=False)}
     runs = {"brax": [], "ours": [], "ours_no_eval": []}
     compiles = {"brax": [], **{k: [o.compile_s] for k, o in ours.items()}}
     for r in range(args.rounds):

@@ -1,0 +1,76 @@
+"""A compiled grid trainer whose epochs are timed, shared by the benchmarks that time whole epochs.
+
+Compile time is measured apart: the first epoch compiles, and if it changes
+any state leaf's type (which would make the second call compile again) that
+second compile is named and kept out of the timed epochs too.
+"""
+from __future__ import annotations
+
+import statistics
+import time
+from unittest import mock
+
+import jax
+import jax.numpy as jnp
+from brax.envs.base import Env
+
+import ccp_jax.trainer as trainer_module
+from ccp_jax.collect import make_evaluate
+from ccp_jax.config import Config
+from ccp_jax.envs import make_env
+from ccp_jax.trainer import make_grid_train
+
+
+def no_eval(config, env, actor):
+    """A stand-in for `make_evaluate` whose `evaluate` returns zeros shaped like the real one's metrics.
+
+    Patched into `ccp_jax.trainer` to time an epoch without its evaluation (the real evaluation is only
+    traced abstractly, for its output shapes; it is not part of the compiled program).
+    """
+    real = make_evaluate(config, env, actor)
+
+    def evaluate(*args):
+        return jax.tree.map(lambda s: jnp.zeros(s.shape, s.dtype), jax.eval_shape(real, *args))
+    return evaluate
+
+
+def avals(tree) -> list[tuple]:
+    """(path, shape, dtype, weak_type) of every leaf: what jit's cache keys on."""
+    return [(jax.tree_util.keystr(p), x.shape, x.dtype, getattr(x, "weak_type", False))
+            for p, x in jax.tree_util.tree_flatten_with_path(tree)[0]]
+
+
+class TimedGrid:
+    """The grid trainer of `config`, built, compiled and warmed; `epoch()` runs and times one `train_step`.
+
+    `first`: the compiling epoch's seconds; `compile_s`: first minus a warm epoch; `retraced`: leaves
+    whose type the first epoch changed (then `second` is the recompiling epoch's seconds).
+    """
+
+    def __init__(self, config: Config, env: Env | None = None, evaluate: bool = True):
+        env = env or make_env(config)
+        if evaluate:
+            self.trainer = make_grid_train(config, env)
+        else:
+            with mock.patch.object(trainer_module, "make_evaluate", no_eval):
+                self.trainer = make_grid_train(config, env)
+        self.eta, seeds = (jnp.asarray(x) for x in config.grid_arrays())
+        self.state = jax.block_until_ready(self.trainer.init(seeds))
+        self.times: list[float] = []
+        before = avals(self.state)
+        self.first = self.epoch()
+        self.retraced = [f"{a[0]}: {a[1:]} -> {b[1:]}" for a, b in zip(before, avals(self.state)) if a != b]
+        self.second = self.epoch() if self.retraced else 0.0
+        self.compile_s = self.first - self.epoch()
+        self.times.clear()
+
+    def epoch(self) -> float:
+        t = time.perf_counter()
+        self.state, metrics = self.trainer.train_step(self.state, self.eta)
+        jax.block_until_ready((self.state, metrics))
+        self.times.append(time.perf_counter() - t)
+        return self.times[-1]
+
+    @property
+    def median(self) -> float:
+        return statistics.median(self.times)
