@@ -21,8 +21,11 @@ import numpy as np
 from ccp_jax import checkpoint
 from ccp_jax.config import AUTO, Config, ConfigError, make_config
 
-# Domains of the paper: (env, rooms). Peg has two fixed stages.
-DOMAINS = {"maze2": ("maze", 2), "maze3": ("maze", 3), "maze4": ("maze", 4), "peg": ("peg", 2)}
+# Domains: (env, rooms); the paper's four, and Brax's pusher (issue 11). Peg and pusher have two fixed stages.
+DOMAINS = {"maze2": ("maze", 2), "maze3": ("maze", 3), "maze4": ("maze", 4), "peg": ("peg", 2),
+           "pusher": ("pusher", 2)}
+# Per-domain settings on top of a scale: pusher episodes are brax's 200 steps (10 s), not the maze's 1000.
+DOMAIN_OVERRIDES = {"pusher": dict(max_episode_steps=200)}
 PAPER_ETAS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
 
 # The paper's Table I (success, mean of the last 10 epochs, 5 seeds; TP 3 seeds). None: not reported.
@@ -62,20 +65,22 @@ class Scale:
         env, rooms = DOMAINS[domain]
         return make_config(self.preset, env=env, rooms=rooms, algo=algo, etas=tuple(tuple(e) for e in etas),
                            seeds=tuple(range(seeds or self.seeds)), total_steps=self.total_steps[domain],
-                           **{**self.overrides, **changes})
+                           **{**self.overrides, **DOMAIN_OVERRIDES.get(domain, {}), **changes})
 
 
 SCALES = {
     # The paper's budget (SPEC §3): [256, 256] nets, 1e6 buffers, 3M maze steps, 5 seeds.
     "paper": Scale("paper", seeds=5, etas=PAPER_ETAS + (AUTO,),
-                   total_steps={"maze2": 3_000_000, "maze3": 3_000_000, "maze4": 3_000_000, "peg": 3_000_000}),
+                   total_steps={"maze2": 3_000_000, "maze3": 3_000_000, "maze4": 3_000_000, "peg": 3_000_000,
+                                "pusher": 3_000_000}),
     # What a 2-core CPU affords (measured, see experiments/README.md): SPEC §7's [64, 64] yardstick
     # settings, 3 seeds, five of the nine ratios, budgets where the 2-room maze is learnt.
     "cpu": Scale("small", seeds=3, etas=(0.1, 0.3, 0.5, 0.7, 0.9, AUTO),
-                 total_steps={"maze2": 150_000, "maze3": 300_000, "maze4": 400_000, "peg": 100_000}),
+                 total_steps={"maze2": 150_000, "maze3": 300_000, "maze4": 400_000, "peg": 100_000,
+                              "pusher": 100_000}),
     # Seconds: checks that a script runs end to end (used by the tests).
     "smoke": Scale("tiny", seeds=2, etas=(0.1, AUTO),
-                   total_steps={"maze2": 400, "maze3": 400, "maze4": 400, "peg": 200}),
+                   total_steps={"maze2": 400, "maze3": 400, "maze4": 400, "peg": 200, "pusher": 200}),
 }
 
 

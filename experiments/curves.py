@@ -22,7 +22,8 @@ from ccp_jax.config import AUTO
 from common import final_success, read_json, results_folder
 from table1 import run_dir, train_domain
 
-TITLES = {"maze2": "2-room maze", "maze3": "3-room maze", "maze4": "4-room maze", "peg": "peg in hole"}
+TITLES = {"maze2": "2-room maze", "maze3": "3-room maze", "maze4": "4-room maze", "peg": "peg in hole",
+          "pusher": "Brax pusher"}
 
 
 @dataclasses.dataclass

@@ -36,6 +36,7 @@ class Args:
     scale: Literal["cpu", "paper", "smoke"] = "cpu"
     """Budget: cpu (hours on a 2-core CPU), paper (3M steps, 5 seeds; needs a GPU), smoke (seconds)."""
     domains: tuple[str, ...] = ("maze2", "maze3", "maze4", "peg")
+    """Any of maze2, maze3, maze4, peg, and pusher (Brax's, issue 11: not in the paper)."""
     algos: tuple[str, ...] = ("csac", "sac", "naive")
     out: Optional[Path] = None
     """Results folder (default experiments/results/table1_<scale>)."""

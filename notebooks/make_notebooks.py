@@ -93,6 +93,53 @@ plot_main([str(out)])
 display(Image(str(out / "success.png")))'''),
 ]
 
+OWN_TASK = [
+    new_markdown_cell("# Your own multi-stage task\n\nAny `brax.envs.base.Env` becomes a CCP task with a "
+                      "`StageSpec`: how far along each stage is, and when it is done. Here Brax's own `pusher` "
+                      "(a 7-joint arm, a puck, a goal) becomes *reach the puck, then push it to the goal*, and "
+                      "CSAC trains on it. A reach that touches the puck on the goal's side is greedy and useless "
+                      "for the push: the next agent's critic is what tells the reaching agent to come from behind."),
+    new_code_cell(INSTALL),
+    new_code_cell(PARAMS),
+    new_code_cell('''import ccp_jax  # first: it sets the XLA CPU flag that MuJoCo MJX needs on a CPU
+import jax.numpy as jnp
+from brax import envs
+from envs_mjx.contract import check_env
+from envs_mjx.stage_wrapper import StageSpec, StageWrapper
+
+TIP, PUCK, GOAL = slice(14, 17), slice(17, 20), slice(20, 23)  # positions in brax's pusher observation
+reach = lambda s: jnp.linalg.norm(s.obs[TIP] - s.obs[PUCK])
+to_goal = lambda s: jnp.linalg.norm(s.obs[PUCK][:2] - s.obs[GOAL][:2])
+
+def make_task():
+    spec = StageSpec(
+        num_stages=2,
+        progress=(lambda s: 1 - (reach(s) - 0.12) / 0.5, lambda s: 1 - (to_goal(s) - 0.05) / 0.4),  # clipped to [0, 1]
+        completed=(lambda s: reach(s) < 0.12, lambda s: to_goal(s) < 0.05),
+    )
+    return StageWrapper(envs.get_environment("pusher", backend="mjx"), spec, episode_length=50 if TINY else 200)
+
+check_env(make_task())  # raises, naming every broken rule, if the task does not meet the contract
+"the task meets the contract"'''),
+    new_markdown_cell("Train it like a built-in env: `env` names the factory as `module:function` (here this "
+                      "notebook's own namespace, `__main__`). From a shell it would be "
+                      "`python -m ccp_jax.train --env my_module:make_task --eta 0.5 0.9`."),
+    new_code_cell('''from pathlib import Path
+import tempfile
+from ccp_jax import make_config, run
+
+out = Path(tempfile.mkdtemp()) / "pusher"
+config = make_config("tiny" if TINY else "small", env="__main__:make_task", rooms=2,  # rooms: the task's stages
+                     algo="csac", etas=((0.5,), (0.9,)), seeds=(0,),
+                     total_steps=400 if TINY else 300_000, max_episode_steps=50 if TINY else 200)
+summary = run(config, out, progress=not TINY)
+[(m["eta"], m["final_success"]) for m in summary["members"]]'''),
+    new_code_cell('''from IPython.display import Image, display
+from ccp_jax.plot import main as plot_main
+plot_main([str(out)])
+display(Image(str(out / "success.png")))'''),
+]
+
 
 def write(name: str, cells: list) -> None:
     nb = new_notebook(cells=cells, metadata={"kernelspec": {"name": "python3", "display_name": "Python 3"},
@@ -104,3 +151,4 @@ if __name__ == "__main__":
     write("quickstart.ipynb", QUICKSTART)
     write("ratio_sweep.ipynb", SWEEP)
     write("peg_in_hole.ipynb", PEG)
+    write("own_task.ipynb", OWN_TASK)

@@ -9,7 +9,7 @@ from nbclient import NotebookClient
 NOTEBOOKS = Path(__file__).parent.parent / "notebooks"
 
 
-@pytest.mark.parametrize("name", ["quickstart.ipynb", "ratio_sweep.ipynb",
+@pytest.mark.parametrize("name", ["quickstart.ipynb", "ratio_sweep.ipynb", "own_task.ipynb",
                                   pytest.param("peg_in_hole.ipynb", marks=pytest.mark.slow)])
 def test_notebook_executes(name, tmp_path, monkeypatch):
     monkeypatch.setenv("CCP_NOTEBOOK_SCALE", "tiny")
@@ -29,6 +29,6 @@ def test_notebooks_are_generated_from_their_script():
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     for name, cells in (("quickstart.ipynb", module.QUICKSTART), ("ratio_sweep.ipynb", module.SWEEP),
-                        ("peg_in_hole.ipynb", module.PEG)):
+                        ("peg_in_hole.ipynb", module.PEG), ("own_task.ipynb", module.OWN_TASK)):
         committed = nbformat.read(NOTEBOOKS / name, as_version=4)
         assert [c.source for c in committed.cells] == [c.source for c in cells], name
