@@ -118,17 +118,16 @@ def make_tp_train(config: Config, env: Env, primitives: Primitives) -> Trainer:
                        control=control_init(config.num_envs, config.tp_max_steps + 1, obs_size), key=key,
                        env_steps=jnp.int32(0), init_env_steps=init_steps, epoch=jnp.int32(0))
 
-    def train_step(state: TPState, eta: jax.Array) -> tuple[TPState, TPEpochMetrics]:
-        del eta
-        key, k_roll, k_prox, k_ppo, k_eval = jax.random.split(state.key, 5)
-        agents, preds = state.agents, state.predictors
-        act = TPParams(policy=agents.actor, proximity=preds.params, norm=agents.norm)
-        env_state, control, data, samples, stats = rollout(act, state.env_state, state.control, preds.data, k_roll)
+    def ppo_inputs(agents: TransitionAgents, samples, env_state: State, control: Control):
+        """The rollout's transition samples, flattened to [M = T·E], made ready for PPO.
 
-        # Normalisers take in this epoch's transition states; values and old log-probabilities are then
-        # computed with the new moments, so PPO's ratios start at exactly 1.
-        flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), samples)  # [M = T·E, ...]
-        mine = ((flat.policy[None, :] == jnp.arange(num_k)[:, None]) * flat.valid).astype(jnp.float32)  # [K, M]
+        The normalisers first take in this epoch's transition states; values
+        and old log-probabilities are then computed with the new moments, so
+        PPO's ratios start at exactly 1. Returns (norm [K], samples [M],
+        weight [K, M] = each policy's own samples, logp_old, adv, ret [M]).
+        """
+        flat = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), samples)
+        mine = ((flat.policy[None, :] == jnp.arange(num_k)[:, None]) * flat.valid).astype(jnp.float32)
         norm = jax.vmap(norm_update, in_axes=(0, None, 0))(agents.norm, flat.obs, mine)
 
         def heads(pi, v, stats):
@@ -137,14 +136,22 @@ def make_tp_train(config: Config, env: Env, primitives: Primitives) -> Trainer:
             return log_prob(mean, log_std, logits, flat.action, flat.term, flat.forced), nets.value.apply(v, obs)
 
         logp_k, value_k = jax.vmap(heads)(agents.actor, agents.value, norm)  # [K, M]
-        own = lambda x: jnp.take_along_axis(x, flat.policy[None], 0)[0]
+        own = lambda x: jnp.take_along_axis(x, flat.policy[None], 0)[0]  # each sample's own policy
         logp_old, value = own(logp_k), own(value_k)
-        shape = samples.valid.shape  # [T, E]
+        # A segment still running when the rollout ends bootstraps from the value of the final state.
         last_k = jnp.clip(env_state.info["stage"] - 1, 0, num_k - 1)
-        last_value = per_policy(nets.value.apply, agents.value, norm, env_state.obs, last_k)
-        last_value = last_value * control.in_transition
-        adv, ret = gae(samples.reward, value.reshape(shape), samples.end, samples.valid, last_value,
+        last_value = per_policy(nets.value.apply, agents.value, norm, env_state.obs, last_k) * control.in_transition
+        adv, ret = gae(samples.reward, value.reshape(samples.valid.shape), samples.end, samples.valid, last_value,
                        config.tp_gamma, config.tp_gae_lambda)
+        return norm, flat, mine, logp_old, adv.reshape(-1), ret.reshape(-1)
+
+    def train_step(state: TPState, eta: jax.Array) -> tuple[TPState, TPEpochMetrics]:
+        del eta
+        key, k_roll, k_prox, k_ppo, k_eval = jax.random.split(state.key, 5)
+        agents, preds = state.agents, state.predictors
+        act = TPParams(policy=agents.actor, proximity=preds.params, norm=agents.norm)
+        env_state, control, data, samples, stats = rollout(act, state.env_state, state.control, preds.data, k_roll)
+        norm, flat, mine, logp_old, adv, ret = ppo_inputs(agents, samples, env_state, control)
 
         def prox_step(carry, k):
             params, opt = carry
@@ -155,8 +162,8 @@ def make_tp_train(config: Config, env: Env, primitives: Primitives) -> Trainer:
                                                              jax.random.split(k_prox, config.tp_prox_updates))
         (actor, value_params), ppo_opt, ppo_metrics = jax.vmap(
             ppo_update, in_axes=(0, 0, 0, None, None, None, None, 0, 0))(
-            (agents.actor, agents.value), agents.opt, norm, flat, logp_old, adv.reshape(-1), ret.reshape(-1),
-            mine, jax.random.split(k_ppo, num_k))
+            (agents.actor, agents.value), agents.opt, norm, flat, logp_old, adv, ret, mine,
+            jax.random.split(k_ppo, num_k))
 
         agents = TransitionAgents(actor=actor, value=value_params, opt=ppo_opt, norm=norm)
         preds = Predictors(params=prox_params, opt=prox_opt, data=data)
