@@ -73,7 +73,7 @@ def group_label(group: Group, show_task: bool = False) -> str:
     """'csac η=0.1' (cooperative agents' ratios; the last agent's is always 1), or the algo alone."""
     task, algo, eta = group
     label = algo
-    if algo == "csac":
+    if algo.startswith("csac"):
         coop = eta[:-1] or eta
         label += " η=" + ",".join(x if isinstance(x, str) else f"{x:g}" for x in coop)
     return f"{task} {label}" if show_task else label
@@ -181,11 +181,19 @@ def main(argv: Optional[Sequence[str]] = None) -> Path:
     parser.add_argument("--out", type=Path, help="PNG to write (default RUN_DIR/success.png for success_rate, "
                                                   "else RUN_DIR/<metric>.png, in the first RUN_DIR)")
     parser.add_argument("--title")
+    parser.add_argument("--labels", nargs="+", metavar="LABEL",
+                        help="one name per RUN_DIR, replacing its algo in the legend (to compare variants of one algo)")
     args = parser.parse_args(argv)
+    if args.labels and len(args.labels) != len(args.run_dirs):
+        parser.exit(2, f"error: labels: {len(args.labels)} given for {len(args.run_dirs)} run folders\n")
     name = "success" if args.metric == "success_rate" else args.metric.replace("/", "_agent")
     out = args.out or args.run_dirs[0] / f"{name}.png"
     try:
-        groups = load_curves(args.run_dirs, args.metric)
+        if args.labels:
+            groups = {(task, label, eta): series for run_dir, label in zip(args.run_dirs, args.labels)
+                      for (task, _, eta), series in load_curves([run_dir], args.metric).items()}
+        else:
+            groups = load_curves(args.run_dirs, args.metric)
     except (FileNotFoundError, KeyError) as err:
         parser.exit(2, f"error: {err}\n")
     curves(groups, args.metric, title=args.title).savefig(out)

@@ -57,6 +57,17 @@ def test_plot_per_agent_metric_and_bad_metric(run_dir, tmp_path):
         plot.main([str(run_dir), "--metric", "no_such_metric"])
 
 
+def test_plot_labels_keep_runs_of_one_algo_apart(run_dir, tmp_path, monkeypatch):
+    drawn = {}
+    real = plot.curves
+    monkeypatch.setattr(plot, "curves", lambda groups, *a, **k: drawn.update(groups) or real(groups, *a, **k))
+    plot.main([str(run_dir), str(run_dir), "--labels", "csac (a)", "csac (b)", "--out", str(tmp_path / "ab.png")])
+    assert sorted(g[1] for g in drawn) == ["csac (a)", "csac (b)"]
+    assert plot.group_label(next(iter(drawn))).endswith("η=0.1")
+    with pytest.raises(SystemExit):
+        plot.main([str(run_dir), "--labels", "a", "b"])
+
+
 def test_load_curves_groups_members_by_algo_and_eta(run_dir, config):
     groups = plot.load_curves([run_dir, run_dir])  # the same run twice pools its members twice
     (group, series), = groups.items()
