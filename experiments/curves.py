@@ -30,7 +30,7 @@ TITLES = {"maze2": "2-room maze", "maze3": "3-room maze", "maze4": "4-room maze"
 class Args:
     scale: Literal["cpu", "paper", "smoke"] = "cpu"
     domains: tuple[str, ...] = ("maze2", "maze3", "maze4", "peg")
-    algos: tuple[str, ...] = ("csac", "sac", "naive")
+    algos: tuple[str, ...] = ("csac", "sac", "naive", "tp")
     with_auto: bool = True
     """Also draw CSAC with η = auto (issue 9) next to the best swept ratio."""
     out: Optional[Path] = None

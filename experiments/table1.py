@@ -10,7 +10,8 @@ domain by domain and the table is rewritten after each, so an interrupted
 sweep leaves a partial table and resumes where it stopped. Success is the
 paper's: mean evaluation success over the last 10 epochs, mean ± std over seeds.
 
-The CSAC grid also holds `auto` members (η* from running critic ranges,
+TP (`--algo tp`) runs last in each domain, with member `--tp-primitives-member`
+of that domain's Naive run as its frozen primitives. The CSAC grid also holds `auto` members (η* from running critic ranges,
 issue 9), trained with the same seeds as the swept ratios.
 """
 from __future__ import annotations
@@ -37,7 +38,10 @@ class Args:
     """Budget: cpu (hours on a 2-core CPU), paper (3M steps, 5 seeds; needs a GPU), smoke (seconds)."""
     domains: tuple[str, ...] = ("maze2", "maze3", "maze4", "peg")
     """Any of maze2, maze3, maze4, peg, and pusher (Brax's, issue 11: not in the paper)."""
-    algos: tuple[str, ...] = ("csac", "sac", "naive")
+    algos: tuple[str, ...] = ("csac", "sac", "naive", "tp")
+    """tp runs last: its primitives are the domain's Naive agents."""
+    tp_primitives_member: int = 0
+    """Which Naive grid member (seed) provides TP's primitives."""
     out: Optional[Path] = None
     """Results folder (default experiments/results/table1_<scale>)."""
     table_only: bool = False
@@ -48,12 +52,22 @@ def run_dir(out: Path, domain: str, algo: str) -> Path:
     return out / domain / algo
 
 
-def train_domain(scale_name: str, domain: str, algos: tuple[str, ...], out: Path) -> None:
-    """Trains (or resumes, or skips) every algorithm's grid of one domain."""
+def train_domain(scale_name: str, domain: str, algos: tuple[str, ...], out: Path, primitives_member: int = 0) -> None:
+    """Trains (or resumes, or skips) every algorithm's grid of one domain.
+
+    TP's frozen primitives are member `primitives_member` of this domain's Naive run (trained first), so
+    every TP seed reuses one set of primitives, as in the paper.
+    """
     scale = SCALES[scale_name]
-    for algo in algos:
+    for algo in sorted(algos, key=lambda a: a == "tp"):
         etas = [(e,) for e in scale.etas] if algo == "csac" else [(1.0,)]
-        run_grid(scale.config(domain, algo, etas=etas), run_dir(out, domain, algo))
+        extra = {}
+        if algo == "tp":
+            naive = run_dir(out, domain, "naive")
+            if not (naive / "summary.json").exists():
+                raise SystemExit(f"error: algos: tp needs the Naive run of {domain} as primitives; add naive")
+            extra = dict(primitives=str(naive), primitives_member=primitives_member)
+        run_grid(scale.config(domain, algo, etas=etas, **extra), run_dir(out, domain, algo))
 
 
 def collect(out: Path, domains: tuple[str, ...], algos: tuple[str, ...]) -> list[dict]:
@@ -135,7 +149,7 @@ def main(args: Args) -> str:
     out = results_folder(args.out, "table1", args.scale, args.domains)
     if not args.table_only:
         for domain in args.domains:
-            train_domain(args.scale, domain, args.algos, out)
+            train_domain(args.scale, domain, args.algos, out, args.tp_primitives_member)
             write_table(out, args.domains, args.algos, args.scale)
     text = write_table(out, args.domains, args.algos, args.scale)
     print(text)

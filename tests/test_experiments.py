@@ -87,3 +87,9 @@ def test_independent_ratio_report_names_the_best_pair(tmp_path):
     assert "| 1 | 0.50 ± 0.00 | 0.00 ± 0.00 |" in text
     eta1, eta2, values = independent_ratios.plot.ratio_grid([folder])
     np.testing.assert_allclose(values, [[0.0, 1.0], [0.5, 0.0]])
+
+
+def test_tp_needs_the_domains_naive_run_as_primitives(tmp_path):
+    with pytest.raises(SystemExit, match="tp needs the Naive run of maze2"):
+        table1.train_domain("smoke", "maze2", ("tp",), tmp_path)
+    assert not (tmp_path / "maze2" / "tp").exists()
