@@ -92,10 +92,11 @@ def results_folder(out: Optional[Path], name: str, scale: str, domains: Sequence
     return out or Path("experiments/results") / f"{name}_{scale}"
 
 
-def run_grid(config: Config, out: Path, checkpoint_every: int = 10, log=print) -> dict:
+def run_grid(config: Config, out: Path, checkpoint_every: int = 10, log=print, keep_checkpoints: bool = False) -> dict:
     """Trains `config` in `out`, or resumes it, or returns its summary if it is finished.
 
     A folder holding a different config is refused (ConfigError naming the field), never overwritten.
+    Checkpoints are deleted once the run is finished unless `keep_checkpoints` (TP's primitives need them).
     """
     from ccp_jax import train  # heavy (jax): imported when a grid actually runs
 
@@ -123,7 +124,8 @@ def run_grid(config: Config, out: Path, checkpoint_every: int = 10, log=print) -
     start = time.time()
     summary = train.run(config, out, progress=True, resume=resume, checkpoint_every=checkpoint_every,
                         tensorboard=False)
-    shutil.rmtree(out / "checkpoints", ignore_errors=True)
+    if not keep_checkpoints:
+        shutil.rmtree(out / "checkpoints", ignore_errors=True)
     log(f"finished {out} in {time.time() - start:.0f} s")
     return summary
 

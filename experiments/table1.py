@@ -66,8 +66,12 @@ def train_domain(scale_name: str, domain: str, algos: tuple[str, ...], out: Path
             naive = run_dir(out, domain, "naive")
             if not (naive / "summary.json").exists():
                 raise SystemExit(f"error: algos: tp needs the Naive run of {domain} as primitives; add naive")
+            if not (naive / "checkpoints").exists():
+                raise SystemExit(f"error: algos: tp needs the checkpoints of {naive} (its primitives); remove that "
+                                 "folder and run again to retrain Naive, deterministically, with them kept")
             extra = dict(primitives=str(naive), primitives_member=primitives_member)
-        run_grid(scale.config(domain, algo, etas=etas, **extra), run_dir(out, domain, algo))
+        run_grid(scale.config(domain, algo, etas=etas, **extra), run_dir(out, domain, algo),
+                 keep_checkpoints=algo == "naive" and "tp" in algos)
 
 
 def collect(out: Path, domains: tuple[str, ...], algos: tuple[str, ...]) -> list[dict]:

@@ -93,3 +93,7 @@ def test_tp_needs_the_domains_naive_run_as_primitives(tmp_path):
     with pytest.raises(SystemExit, match="tp needs the Naive run of maze2"):
         table1.train_domain("smoke", "maze2", ("tp",), tmp_path)
     assert not (tmp_path / "maze2" / "tp").exists()
+    naive = common.SCALES["smoke"].config("maze2", "naive", etas=[(1.0,)])
+    _fake_run(tmp_path / "maze2" / "naive", naive, {0: [0, 0], 1: [0, 1]})  # finished, checkpoints deleted
+    with pytest.raises(SystemExit, match="tp needs the checkpoints of"):
+        table1.train_domain("smoke", "maze2", ("naive", "tp"), tmp_path)
