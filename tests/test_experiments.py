@@ -97,3 +97,16 @@ def test_tp_needs_the_domains_naive_run_as_primitives(tmp_path):
     _fake_run(tmp_path / "maze2" / "naive", naive, {0: [0, 0], 1: [0, 1]})  # finished, checkpoints deleted
     with pytest.raises(SystemExit, match="tp needs the checkpoints of"):
         table1.train_domain("smoke", "maze2", ("naive", "tp"), tmp_path)
+
+
+def test_eta_auto_rows_compare_auto_variants_with_the_best_swept_ratio(maze2_runs):
+    import eta_auto
+
+    scale = common.SCALES["smoke"]
+    floor = scale.config("maze2", "csac", etas=[("auto",)], normaliser="floor")
+    _fake_run(maze2_runs / "maze2" / "csac_auto_floor", floor, {0: [1, 1, 1], 1: [0, 0, 1]})
+    rows = eta_auto.domain_rows(maze2_runs, "maze2")
+    assert rows[0] == "| maze2 | best swept η = 0.1 | 0.33 ± 0.33 | 0.67 0.00 | 400 (1/2 seeds) |"
+    assert rows[1] == "| maze2 | auto, batch normaliser | 0.83 ± 0.17 | 1.00 0.67 | 300 (2/2 seeds) |"
+    assert rows[2] == "| maze2 | auto, floor normaliser | 0.67 ± 0.33 | 1.00 0.33 | 400 (2/2 seeds) |"
+    assert len(rows) == 3  # no ema run: no row
