@@ -17,6 +17,7 @@ import numpy as np
 from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
+from matplotlib.ticker import FuncFormatter
 
 from ccp_jax import outputs
 
@@ -79,6 +80,11 @@ def group_label(group: Group, show_task: bool = False) -> str:
     return f"{task} {label}" if show_task else label
 
 
+def _steps_label(x: float, _) -> str:
+    """Axis ticks of env steps: 150k, 3M."""
+    return f"{x / 1e6:g}M" if x >= 1e6 else f"{x / 1e3:g}k" if x >= 1e3 else f"{x:g}"
+
+
 def _group_order(group: Group) -> tuple:
     """Sort key: task, algo, then numeric ratios before "auto"."""
     task, algo, eta = group
@@ -115,6 +121,7 @@ def curves(groups: dict[Group, list[Series]], metric: str = "success_rate",
         line, = ax.plot(steps, mean, label=f"{group_label(group, show_task)} (n={count.max(initial=0)})")
         ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2, linewidth=0)
     ax.set_xlabel("environment steps")
+    ax.xaxis.set_major_formatter(FuncFormatter(_steps_label))
     ax.set_ylabel(metric.replace("_", " "))
     if metric == "success_rate":
         ax.set_ylim(-0.02, 1.02)
