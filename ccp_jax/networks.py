@@ -5,7 +5,7 @@ by vmapping `init` and `apply`.
 """
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Callable, Sequence
 
 import flax.linen as nn
 import jax
@@ -15,15 +15,16 @@ LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0  # RLkit's clamp
 
 
 class MLP(nn.Module):
-    """ReLU MLP with a linear output layer."""
+    """MLP with a linear output layer; ReLU hidden layers unless a subclass sets `activation`."""
 
     hidden: Sequence[int]
     out: int
+    activation: Callable[[jax.Array], jax.Array] = nn.relu
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
         for h in self.hidden:
-            x = nn.relu(nn.Dense(h)(x))
+            x = self.activation(nn.Dense(h)(x))
         return nn.Dense(self.out)(x)
 
 

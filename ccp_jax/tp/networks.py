@@ -6,7 +6,7 @@ per primitive 1..N−1, indexed k − 1) are stacked on a leading axis by vmappi
 """
 from __future__ import annotations
 
-from typing import Sequence
+from typing import Callable, Sequence
 
 import flax.linen as nn
 import jax
@@ -18,17 +18,10 @@ from ccp_jax.networks import MLP
 OBS_CLIP = 5.0  # normalised observations are clipped to ±5, as in the released code
 
 
-class TanhMLP(nn.Module):
+class TanhMLP(MLP):
     """tanh MLP with a linear output layer (the released PPO policy and value nets)."""
 
-    hidden: Sequence[int]
-    out: int
-
-    @nn.compact
-    def __call__(self, x: jax.Array) -> jax.Array:
-        for h in self.hidden:
-            x = jnp.tanh(nn.Dense(h)(x))
-        return nn.Dense(self.out)(x)
+    activation: Callable[[jax.Array], jax.Array] = jnp.tanh
 
 
 class TransitionPolicy(nn.Module):
