@@ -78,6 +78,17 @@ class Args:
     eval_episodes: Optional[int] = None
     max_episode_steps: Optional[int] = None
     gamma: Optional[float] = None
+    tau: Optional[float] = None
+    """Polyak rate of the target critics (default 0.005)."""
+    actor_lr: Optional[float] = None
+    critic_lr: Optional[float] = None
+    alpha_lr: Optional[float] = None
+    start_steps: Optional[int] = None
+    """Uniform-random env steps before the policies act (default 1000)."""
+    normalise_last: Optional[bool] = None
+    """The last agent's actor uses its normalised critic (η_N = 1 on Q̂_N) instead of the plain SAC loss."""
+    eta_auto_range: Optional[tuple[float, float]] = None
+    """--eta auto: the interval η* is clipped to (default 0.05 0.95)."""
     normaliser: Optional[Normaliser] = None
     """How critics are scaled in the actor loss: batch (the paper's, default), ema (running min/max), floor."""
     norm_floor: Optional[float] = None
@@ -105,7 +116,8 @@ class Args:
 
 OVERRIDES = ("total_steps", "num_envs", "hidden", "batch_size", "buffer_size", "steps_per_epoch",
              "train_loops_per_epoch", "eval_episodes", "max_episode_steps", "gamma", "absorbing_stages",
-             "absorbing_success", "normaliser", "norm_floor", "norm_ema_rate", "next_action",
+             "absorbing_success", "normaliser", "norm_floor", "norm_ema_rate", "next_action", "tau", "actor_lr",
+             "critic_lr", "alpha_lr", "start_steps", "normalise_last", "eta_auto_range",
              "primitives_member", "tp_max_steps", "tp_init_episodes", "tp_prox_updates", "tp_ppo_epochs", "tp_buffer_size")
 
 

@@ -110,6 +110,22 @@ def test_cli_writes_the_contract_files(tmp_path):
     assert (out / "metrics.jsonl").read_bytes() == before
 
 
+def test_every_hyperparameter_reaches_the_config_from_the_cli():
+    import tyro
+
+    from ccp_jax.train import Args, config_from_args
+
+    args = tyro.cli(Args, args=["--preset", "tiny", "--tau", "0.01", "--actor-lr", "1e-3", "--critic-lr", "2e-3",
+                                "--alpha-lr", "3e-3", "--start-steps", "50", "--normalise-last", "True",
+                                "--eta-auto-range", "0.2", "0.8", "--next-action", "acting", "--normaliser", "ema"])
+    config = config_from_args(args)
+    assert (config.tau, config.actor_lr, config.critic_lr, config.alpha_lr) == (0.01, 1e-3, 2e-3, 3e-3)
+    assert (config.start_steps, config.normalise_last, config.eta_auto_range) == (50, True, (0.2, 0.8))
+    assert (config.next_action, config.normaliser) == ("acting", "ema")
+    with pytest.raises(ConfigError, match="^eta_auto_range:"):
+        config_from_args(tyro.cli(Args, args=["--preset", "tiny", "--eta-auto-range", "0.9", "0.1"]))
+
+
 @pytest.mark.parametrize("algo", ["naive", "sac"])
 def test_baselines_run_through_the_cli(tmp_path, algo):
     summary = main(["--preset", "tiny", "--algo", algo, "--out", str(tmp_path / algo), "--no-progress"])
