@@ -10,8 +10,9 @@ domain by domain and the table is rewritten after each, so an interrupted
 sweep leaves a partial table and resumes where it stopped. Success is the
 paper's: mean evaluation success over the last 10 epochs, mean ± std over seeds.
 
-TP (`--algo tp`) runs last in each domain, with member `--tp-primitives-member`
-of that domain's Naive run as its frozen primitives. The CSAC grid also holds `auto` members (η* from running critic ranges,
+TP (`--algo tp`) runs last in each domain, with one member of that domain's
+Naive run as its frozen primitives: by default the member that got furthest
+(`--tp-primitives-member best`), as a user would keep the primitives that work. The CSAC grid also holds `auto` members (η* from running critic ranges,
 issue 9), trained with the same seeds as the swept ratios.
 """
 from __future__ import annotations
@@ -40,8 +41,8 @@ class Args:
     """Any of maze2, maze3, maze4, peg, and pusher (Brax's, issue 11: not in the paper)."""
     algos: tuple[str, ...] = ("csac", "sac", "naive", "tp")
     """tp runs last: its primitives are the domain's Naive agents."""
-    tp_primitives_member: int = 0
-    """Which Naive grid member (seed) provides TP's primitives."""
+    tp_primitives_member: int | Literal["best"] = "best"
+    """Which Naive grid member (seed) provides TP's primitives; best: highest final success, then final return."""
     out: Optional[Path] = None
     """Results folder (default experiments/results/table1_<scale>)."""
     table_only: bool = False
@@ -52,11 +53,17 @@ def run_dir(out: Path, domain: str, algo: str) -> Path:
     return out / domain / algo
 
 
-def train_domain(scale_name: str, domain: str, algos: tuple[str, ...], out: Path, primitives_member: int = 0) -> None:
+def best_member(summary: dict) -> int:
+    """The grid member whose agents got furthest: highest final success, ties broken by final return."""
+    return max(summary["members"], key=lambda m: (m["final_success"], m["final_return"]))["member"]
+
+
+def train_domain(scale_name: str, domain: str, algos: tuple[str, ...], out: Path,
+                 primitives_member: int | Literal["best"] = "best") -> None:
     """Trains (or resumes, or skips) every algorithm's grid of one domain.
 
-    TP's frozen primitives are member `primitives_member` of this domain's Naive run (trained first), so
-    every TP seed reuses one set of primitives, as in the paper.
+    TP's frozen primitives are member `primitives_member` (or the best member) of this domain's Naive run,
+    trained first, so every TP seed reuses one set of primitives, as in the paper.
     """
     scale = SCALES[scale_name]
     for algo in sorted(algos, key=lambda a: a == "tp"):
@@ -69,7 +76,8 @@ def train_domain(scale_name: str, domain: str, algos: tuple[str, ...], out: Path
             if not (naive / "checkpoints").exists():
                 raise SystemExit(f"error: algos: tp needs the checkpoints of {naive} (its primitives); remove that "
                                  "folder and run again to retrain Naive, deterministically, with them kept")
-            extra = dict(primitives=str(naive), primitives_member=primitives_member)
+            member = best_member(read_json(naive / "summary.json")) if primitives_member == "best" else primitives_member
+            extra = dict(primitives=str(naive), primitives_member=member)
         run_grid(scale.config(domain, algo, etas=etas, **extra), run_dir(out, domain, algo),
                  keep_checkpoints=algo == "naive" and "tp" in algos)
 

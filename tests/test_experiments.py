@@ -110,3 +110,11 @@ def test_eta_auto_rows_compare_auto_variants_with_the_best_swept_ratio(maze2_run
     assert rows[1] == "| maze2 | auto, batch normaliser | 0.83 ± 0.17 | 1.00 0.67 | 300 (2/2 seeds) |"
     assert rows[2] == "| maze2 | auto, floor normaliser | 0.67 ± 0.33 | 1.00 0.33 | 400 (2/2 seeds) |"
     assert len(rows) == 3  # no ema run: no row
+
+
+def test_tp_primitives_are_the_naive_member_that_got_furthest():
+    members = [dict(member=0, final_success=0.0, final_return=900.0),
+               dict(member=1, final_success=0.3, final_return=500.0),
+               dict(member=2, final_success=0.3, final_return=700.0)]
+    assert table1.best_member(dict(members=members)) == 2  # success first, then return
+    assert table1.best_member(dict(members=members[:1])) == 0
