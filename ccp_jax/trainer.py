@@ -2,7 +2,7 @@
 
 `train_step` is one epoch of one run — collect `steps_per_epoch` env steps,
 run `train_loops_per_epoch` joint updates of all agents, evaluate — and is a
-single jittable function. `make_grid_train` vmaps both over the grid axis
+single jittable function. `make_grid_train` maps both over the grid axis
 (seeds × ratios), so a whole sweep is one compiled program.
 """
 from __future__ import annotations
@@ -19,7 +19,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from ccp_jax import buffer as replay
 from ccp_jax.buffer import ReplayBuffer, Transition
 from ccp_jax.collect import EvalMetrics, make_collect, make_evaluate
-from ccp_jax.config import Config
+from ccp_jax.config import Config, ConfigError
 from ccp_jax.learner import AgentState, Networks, UpdateMetrics, init_agents, make_learner, make_networks
 
 
@@ -109,25 +109,51 @@ def make_train(config: Config, env: Env) -> Trainer:
     return Trainer(networks=nets, init=init, train_step=train_step)
 
 
+def default_members_at_once(devices: Sequence[jax.Device], local_members: int) -> int:
+    """How many grid members one device advances together by default.
+
+    On a GPU/TPU all of them (vmapped: the batching fills the device). On a CPU
+    one at a time: a single [64, 64] run already keeps the cores busy, and
+    vmapping 16 runs made each run's update ≈ 20 % slower (its working set
+    leaves the cache; experiments/bench/README.md).
+    """
+    return 1 if devices[0].platform == "cpu" else local_members
+
+
 class GridTrainer:
-    """A `Trainer` vmapped over the grid axis, jitted, and sharded over devices.
+    """A `Trainer` mapped over the grid axis, jitted, and sharded over devices.
 
     The grid axis (seeds × ratios) is split across `devices` with a 1-D mesh;
     a grid that does not divide evenly is padded with copies of its last
-    member, whose results are dropped. `train_step` donates the state, so the
-    replay buffers are updated in place.
+    member, whose results are dropped. On each device, `members_at_once`
+    members are vmapped together and such groups run one after another inside
+    the same compiled program (`jax.lax.map`); the default is
+    `default_members_at_once`. Results do not depend on it beyond float
+    rounding. `train_step` donates the state, so the replay buffers are updated in place.
     """
 
     def __init__(self, config: Config, env: Env, devices: Sequence[jax.Device] | None = None,
-                 trainer: Trainer | None = None):
+                 trainer: Trainer | None = None, members_at_once: int | None = None):
         trainer = make_train(config, env) if trainer is None else trainer  # e.g. TP brings its own
         self.networks = trainer.networks
         self.devices = list(devices or jax.devices())
         self.grid_size = config.grid_size
         self.padded_size = -(-self.grid_size // len(self.devices)) * len(self.devices)
-        self.sharding = NamedSharding(Mesh(np.array(self.devices), ("grid",)), PartitionSpec("grid"))
+        local = self.padded_size // len(self.devices)
+        if members_at_once is not None and members_at_once < 1:
+            raise ConfigError("members_at_once", f"must be >= 1, got {members_at_once}")
+        self.members_at_once = min(members_at_once or default_members_at_once(self.devices, local), local)
+        mesh, spec = Mesh(np.array(self.devices), ("grid",)), PartitionSpec("grid")
+        self.sharding = NamedSharding(mesh, spec)
+
+        def local_step(state: TrainState, eta: jax.Array):
+            if self.members_at_once == local:
+                return jax.vmap(trainer.train_step)(state, eta)
+            return jax.lax.map(lambda x: trainer.train_step(*x), (state, eta), batch_size=self.members_at_once)
+
+        step = jax.shard_map(local_step, mesh=mesh, in_specs=(spec, spec), out_specs=(spec, spec), check_vma=False)
         self._init = jax.jit(jax.vmap(trainer.init), in_shardings=self.sharding, out_shardings=self.sharding)
-        self._step = jax.jit(jax.vmap(trainer.train_step), in_shardings=(self.sharding, self.sharding),
+        self._step = jax.jit(step, in_shardings=(self.sharding, self.sharding),
                              out_shardings=(self.sharding, self.sharding), donate_argnums=0)
 
     def _pad(self, x) -> jax.Array:
@@ -150,6 +176,7 @@ class GridTrainer:
         return state, jax.tree.map(lambda x: x[: self.grid_size], metrics)
 
 
-def make_grid_train(config: Config, env: Env, devices: Sequence[jax.Device] | None = None) -> GridTrainer:
+def make_grid_train(config: Config, env: Env, devices: Sequence[jax.Device] | None = None,
+                    members_at_once: int | None = None) -> GridTrainer:
     """The whole grid of `config` as one compiled program, sharded over `devices` (default: all)."""
-    return GridTrainer(config, env, devices)
+    return GridTrainer(config, env, devices, members_at_once=members_at_once)

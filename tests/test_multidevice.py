@@ -13,8 +13,9 @@ SCRIPT = textwrap.dedent("""
     config = make_config("tiny", etas=((0.1,), (0.9,), (0.5,)), seeds=(0, 1))  # 6 members: padded to 8
     eta, seed = config.grid_arrays()
     results = []
-    for devices in (jax.devices()[:1], jax.devices()):
-        trainer = make_grid_train(config, make_env(config), devices)
+    # One device; four, one member at a time each (the CPU default); four, their two members vmapped.
+    for devices, at_once in ((jax.devices()[:1], None), (jax.devices(), None), (jax.devices(), 2)):
+        trainer = make_grid_train(config, make_env(config), devices, members_at_once=at_once)
         state = trainer.init(seed)
         assert state.env_steps.shape == (trainer.padded_size,)
         for _ in range(2):
@@ -23,9 +24,10 @@ SCRIPT = textwrap.dedent("""
         if len(devices) == 4:
             assert len(state.agents.log_alpha.sharding.device_set) == 4
         results.append(jax.device_get((state.agents, metrics.train.q_loss)))
-    for a, b in zip(jax.tree.leaves(results[0][0]), jax.tree.leaves(results[1][0])):
-        np.testing.assert_allclose(a[:6], b[:6], rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(results[0][1], results[1][1], rtol=1e-5)
+    for other in results[1:]:
+        for a, b in zip(jax.tree.leaves(results[0][0]), jax.tree.leaves(other[0])):
+            np.testing.assert_allclose(a[:6], b[:6], rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(results[0][1], other[1], rtol=1e-5)
     print("EQUAL")
 """)
 

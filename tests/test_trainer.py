@@ -77,6 +77,18 @@ def test_grid_member_equals_the_run_alone(grid_run):
     np.testing.assert_array_equal(state.buffer.size[member], solo_state.buffer.size[0])
 
 
+def test_vmapped_members_equal_members_one_at_a_time(grid_run):
+    trainer, (state, history) = grid_run
+    assert trainer.members_at_once == 1  # the CPU default: one member after another
+    vmapped = make_grid_train(GRID, make_env(GRID), members_at_once=GRID.grid_size)
+    v_state, v_history = _train(GRID, vmapped, 2)
+    for a, b in zip(jax.tree.leaves(state.agents), jax.tree.leaves(v_state.agents)):
+        np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(history[-1].train.q_loss, v_history[-1].train.q_loss, rtol=1e-4)
+    with pytest.raises(ConfigError, match="^members_at_once:"):
+        make_grid_train(GRID, make_env(GRID), members_at_once=0)
+
+
 @pytest.mark.parametrize("algo", ["csac", "sac"])
 def test_learning_on_a_two_stage_line(algo):
     """A point must cross two unit segments; random actions almost never make it in 50 steps."""
@@ -107,7 +119,9 @@ def test_cli_writes_the_contract_files(tmp_path):
     before = (out / "metrics.jsonl").read_bytes()
     with pytest.raises(ConfigError, match="^out:"):
         main(["--preset", "tiny", "--out", str(out), "--no-progress"])
-    assert (out / "metrics.jsonl").read_bytes() == before
+    with pytest.raises(ConfigError, match="^members_at_once:"):
+        main(["--preset", "tiny", "--members-at-once", "0", "--out", str(tmp_path / "never"), "--no-progress"])
+    assert (out / "metrics.jsonl").read_bytes() == before and not (tmp_path / "never").exists()
 
 
 def test_every_hyperparameter_reaches_the_config_from_the_cli():

@@ -183,6 +183,7 @@ def make_tp_train(config: Config, env: Env, primitives: Primitives) -> Trainer:
     return Trainer(networks=nets, init=init, train_step=train_step)
 
 
-def make_tp_grid(config: Config, env: Env, devices=None) -> GridTrainer:
+def make_tp_grid(config: Config, env: Env, devices=None, members_at_once: int | None = None) -> GridTrainer:
     """The TP grid (seeds) as one compiled program; loads the frozen primitives of `config.primitives`."""
-    return GridTrainer(config, env, devices, trainer=make_tp_train(config, env, load_primitives(config)))
+    return GridTrainer(config, env, devices, trainer=make_tp_train(config, env, load_primitives(config)),
+                       members_at_once=members_at_once)

@@ -1,6 +1,7 @@
 """How an epoch's wall time scales with the grid size G (runs vmapped together) and the number of agents N.
 
     python experiments/bench/grid_scaling.py                          # G = 1..32 at N = 3, then N = 1..4 at G = 1
+    python experiments/bench/grid_scaling.py --modes vmap             # only the whole grid vmapped (the GPU default)
     python experiments/bench/grid_scaling.py --grids 1 4 16 --agents  # grid sweep only
     python experiments/bench/grid_scaling.py --breakdown              # also split epochs into collect / update / eval
 
@@ -17,6 +18,10 @@ compile time); then epochs of all configurations are timed round-robin,
 its configuration's epochs, so a change of load on a shared machine spreads
 over all configurations instead of landing on one.
 
+Each grid size runs in two modes (`--modes`): `one`, members one after
+another inside the compiled program (`members_at_once=1`, the CPU default),
+and `vmap`, all G members vmapped together (the GPU default).
+
 Columns: epoch s = one call of `train_step` for the whole grid; per run =
 epoch s / G; speed-up = G · epoch(G=1) / epoch(G), i.e. how many times more
 runs per second the grid gives than one run at a time.
@@ -29,6 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import sys
+from typing import Literal
 from pathlib import Path
 
 import jax
@@ -45,6 +51,8 @@ class Args:
     grids: tuple[int, ...] = (1, 2, 4, 8, 16, 32)
     """Grid sizes G for the grid sweep (at `grid_agents` agents); empty to skip."""
     grid_agents: int = 3
+    modes: tuple[Literal["one", "vmap"], ...] = ("one", "vmap")
+    """Grid modes: members one at a time (members_at_once=1) and/or all vmapped (members_at_once=G)."""
     agents: tuple[int, ...] = (1, 2, 3, 4)
     """Agent counts N for the agent sweep (at G = `agents_grid`); empty to skip."""
     agents_grid: int = 1
@@ -68,17 +76,19 @@ def config_for(args: Args, n_agents: int, grid: int, **overrides):
     return make_config(args.preset, **{**fields, **overrides})
 
 
-def build(args: Args, n_agents: int, grid: int) -> dict[str, TimedGrid]:
-    runs = {"full": TimedGrid(config_for(args, n_agents, grid))}
+def build(args: Args, n_agents: int, grid: int, mode: str) -> dict[str, TimedGrid]:
+    at_once = 1 if mode == "one" else grid
+    runs = {"full": TimedGrid(config_for(args, n_agents, grid), members_at_once=at_once)}
     if args.breakdown:
-        runs["no_eval"] = TimedGrid(config_for(args, n_agents, grid), evaluate=False)
-        runs["collect"] = TimedGrid(config_for(args, n_agents, grid, train_loops_per_epoch=1), evaluate=False)
+        runs["no_eval"] = TimedGrid(config_for(args, n_agents, grid), evaluate=False, members_at_once=at_once)
+        runs["collect"] = TimedGrid(config_for(args, n_agents, grid, train_loops_per_epoch=1), evaluate=False,
+                                    members_at_once=at_once)
     return runs
 
 
-def row_of(n_agents: int, grid: int, runs: dict[str, TimedGrid]) -> dict:
+def row_of(n_agents: int, grid: int, mode: str, runs: dict[str, TimedGrid]) -> dict:
     full = runs["full"]
-    row = {"agents": n_agents, "grid": grid, "epoch_s": full.median, "compile_s": full.compile_s,
+    row = {"agents": n_agents, "grid": grid, "mode": mode, "epoch_s": full.median, "compile_s": full.compile_s,
            "epochs": full.times, "recompiled_s": full.second - full.median if full.retraced else 0.0,
            "retraced": full.retraced}
     if "collect" in runs:
@@ -88,14 +98,14 @@ def row_of(n_agents: int, grid: int, runs: dict[str, TimedGrid]) -> dict:
 
 
 def print_rows(rows: list[dict], args: Args, base: dict) -> None:
-    head = f"{'G':>4}{'N':>3}{'epoch s':>10}{'per run s':>11}{'speed-up':>10}{'agent-upd/s':>13}{'env steps/s':>13}{'compile s':>11}"
+    head = f"{'G':>4}{'N':>3}{'mode':>6}{'epoch s':>10}{'per run s':>11}{'speed-up':>10}{'agent-upd/s':>13}{'env steps/s':>13}{'compile s':>11}"
     if args.breakdown:
         head += f"{'collect':>9}{'update':>8}{'eval':>7}"
     print(head)
     for r in rows:
         g, n, e = r["grid"], r["agents"], r["epoch_s"]
         speedup = f"{g * base['epoch_s'] / e:>10.2f}" if base["agents"] == n else f"{'—':>10}"
-        line = (f"{g:>4}{n:>3}{e:>10.2f}{e / g:>11.3f}{speedup}{g * n * args.loops / e:>13.0f}"
+        line = (f"{g:>4}{n:>3}{r['mode']:>6}{e:>10.2f}{e / g:>11.3f}{speedup}{g * n * args.loops / e:>13.0f}"
                 f"{g * args.steps_per_epoch / e:>13.0f}{r['compile_s']:>11.1f}")
         if args.breakdown:
             line += "".join(f"{r[k] / e:>{w}.0%}" for k, w in (("collect_s", 9), ("update_s", 8), ("eval_s", 7)))
@@ -108,24 +118,26 @@ def main(args: Args) -> dict:
     print(f"preset {args.preset}, hidden {args.hidden}, epoch = {args.steps_per_epoch} env steps (1 env) + "
           f"{args.loops} joint updates + eval {args.eval_episodes} × ≤{args.episode_length} steps; buffers "
           f"{args.buffer}/agent; medians of {args.reps} epochs; devices {jax.devices()}")
-    configs = [("grid", args.grid_agents, g) for g in args.grids] + [("agents", n, args.agents_grid) for n in args.agents]
+    modes = args.modes or ("one",)
+    configs = ([("grid", args.grid_agents, g, m) for g in args.grids for m in modes if g > 1 or m == modes[0]]
+               + [("agents", n, args.agents_grid, modes[0]) for n in args.agents])
     built = []
-    for sweep, n, g in configs:  # compile everything first ...
-        built.append((sweep, n, g, build(args, n, g)))
+    for sweep, n, g, mode in configs:  # compile everything first ...
+        built.append((sweep, n, g, build(args, n, g, mode)))
         full = built[-1][3]["full"]
-        print(f"  built N={n} G={g}: first epoch (compile + run) {full.first:.1f} s", flush=True)
+        print(f"  built N={n} G={g} {mode}: first epoch (compile + run) {full.first:.1f} s", flush=True)
         if full.retraced:
             print(f"  WARNING N={n} G={g}: the state's types changed in the first epoch, so the second epoch "
                   f"compiled again ({full.second:.1f} s): " + "; ".join(full.retraced), flush=True)
     for r in range(args.reps):  # ... then time epochs round-robin, so load changes hit every configuration alike
-        for _, _, _, runs in built:
+        for *_, runs in built:
             for run in runs.values():
                 run.epoch()
         print(f"  round {r}: " + ", ".join(f"N={n} G={g} {runs['full'].times[-1]:.2f} s"
-                                           for _, n, g, runs in built), flush=True)
+                                           for _, n, g, _, runs in built), flush=True)
     result = {"args": dataclasses.asdict(args), "grid": [], "agents": []}
-    for sweep, n, g, runs in built:
-        result[sweep].append(row_of(n, g, runs))
+    for sweep, n, g, mode, runs in built:
+        result[sweep].append(row_of(n, g, mode, runs))
     if result["grid"]:
         print(f"\nGrid sweep (N = {args.grid_agents}); speed-up against G = {result['grid'][0]['grid']}:")
         base = result["grid"][0]

@@ -47,13 +47,14 @@ class TimedGrid:
     whose type the first epoch changed (then `second` is the recompiling epoch's seconds).
     """
 
-    def __init__(self, config: Config, env: Env | None = None, evaluate: bool = True):
+    def __init__(self, config: Config, env: Env | None = None, evaluate: bool = True,
+                 members_at_once: int | None = None):
         env = env or make_env(config)
         if evaluate:
-            self.trainer = make_grid_train(config, env)
+            self.trainer = make_grid_train(config, env, members_at_once=members_at_once)
         else:
             with mock.patch.object(trainer_module, "make_evaluate", no_eval):
-                self.trainer = make_grid_train(config, env)
+                self.trainer = make_grid_train(config, env, members_at_once=members_at_once)
         self.eta, seeds = (jnp.asarray(x) for x in config.grid_arrays())
         self.state = jax.block_until_ready(self.trainer.init(seeds))
         self.times: list[float] = []
