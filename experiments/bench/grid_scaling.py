@@ -123,8 +123,8 @@ def main(args: Args) -> dict:
                + [("agents", n, args.agents_grid, modes[0]) for n in args.agents])
     built = []
     for sweep, n, g, mode in configs:  # compile everything first ...
-        built.append((sweep, n, g, build(args, n, g, mode)))
-        full = built[-1][3]["full"]
+        built.append((sweep, n, g, mode, build(args, n, g, mode)))
+        full = built[-1][4]["full"]
         print(f"  built N={n} G={g} {mode}: first epoch (compile + run) {full.first:.1f} s", flush=True)
         if full.retraced:
             print(f"  WARNING N={n} G={g}: the state's types changed in the first epoch, so the second epoch "
@@ -133,8 +133,8 @@ def main(args: Args) -> dict:
         for *_, runs in built:
             for run in runs.values():
                 run.epoch()
-        print(f"  round {r}: " + ", ".join(f"N={n} G={g} {runs['full'].times[-1]:.2f} s"
-                                           for _, n, g, _, runs in built), flush=True)
+        print(f"  round {r}: " + ", ".join(f"N={n} G={g} {mode} {runs['full'].times[-1]:.2f} s"
+                                           for _, n, g, mode, runs in built), flush=True)
     result = {"args": dataclasses.asdict(args), "grid": [], "agents": []}
     for sweep, n, g, mode, runs in built:
         result[sweep].append(row_of(n, g, mode, runs))
