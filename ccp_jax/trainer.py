@@ -126,7 +126,7 @@ class GridTrainer:
     The grid axis (seeds × ratios) is split across `devices` with a 1-D mesh;
     a grid that does not divide evenly is padded with copies of its last
     member, whose results are dropped. On each device, `members_at_once`
-    members are vmapped together and such groups run one after another inside
+    members (rounded down to a divisor of the device's share) are vmapped together and such groups run one after another inside
     the same compiled program (`jax.lax.map`); the default is
     `default_members_at_once`. Results do not depend on it beyond float
     rounding. `train_step` donates the state, so the replay buffers are updated in place.
@@ -142,14 +142,19 @@ class GridTrainer:
         local = self.padded_size // len(self.devices)
         if members_at_once is not None and members_at_once < 1:
             raise ConfigError("members_at_once", f"must be >= 1, got {members_at_once}")
-        self.members_at_once = min(members_at_once or default_members_at_once(self.devices, local), local)
+        wanted = min(members_at_once or default_members_at_once(self.devices, local), local)
+        self.members_at_once = max(k for k in range(1, wanted + 1) if local % k == 0)  # equal groups
         mesh, spec = Mesh(np.array(self.devices), ("grid",)), PartitionSpec("grid")
         self.sharding = NamedSharding(mesh, spec)
 
         def local_step(state: TrainState, eta: jax.Array):
             if self.members_at_once == local:
                 return jax.vmap(trainer.train_step)(state, eta)
-            return jax.lax.map(lambda x: trainer.train_step(*x), (state, eta), batch_size=self.members_at_once)
+            # Explicit shapes, not lax.map(batch_size=...): its reshape(-1) fails on zero-size leaves.
+            k = self.members_at_once
+            grouped = jax.tree.map(lambda x: x.reshape((local // k, k) + x.shape[1:]), (state, eta))
+            out = jax.lax.map(lambda x: jax.vmap(trainer.train_step)(*x), grouped)
+            return jax.tree.map(lambda x: x.reshape((local,) + x.shape[2:]), out)
 
         step = jax.shard_map(local_step, mesh=mesh, in_specs=(spec, spec), out_specs=(spec, spec), check_vma=False)
         self._init = jax.jit(jax.vmap(trainer.init), in_shardings=self.sharding, out_shardings=self.sharding)
