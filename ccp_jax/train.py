@@ -22,7 +22,7 @@ from tqdm.auto import tqdm
 from ccp_jax import checkpoint, loggers, outputs
 from ccp_jax.config import AUTO, PRESETS, Config, ConfigError, NextAction, Normaliser, PresetName, make_config
 from ccp_jax.envs import make_env, user_env
-from ccp_jax.trainer import make_grid_train
+from ccp_jax.trainer import check_members_at_once, make_grid_train
 from ccp_jax.tp.primitives import primitives_config
 from ccp_jax.tp.trainer import make_tp_grid
 
@@ -274,8 +274,7 @@ def main(argv: Optional[list[str]] = None) -> dict:
                                    process_id=args.process_id)
     if args.checkpoint_every < 0:
         raise ConfigError("checkpoint_every", f"must be >= 0, got {args.checkpoint_every}")
-    if args.members_at_once is not None and args.members_at_once < 1:
-        raise ConfigError("members_at_once", f"must be >= 1, got {args.members_at_once}")
+    check_members_at_once(args.members_at_once)  # before the run folder is made
     if args.resume is not None:
         config, out = resume_config(args), args.resume
     else:

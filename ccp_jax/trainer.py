@@ -109,6 +109,12 @@ def make_train(config: Config, env: Env) -> Trainer:
     return Trainer(networks=nets, init=init, train_step=train_step)
 
 
+def check_members_at_once(members_at_once: int | None) -> None:
+    """Refuses a group size below 1 (None means the default), naming the field."""
+    if members_at_once is not None and members_at_once < 1:
+        raise ConfigError("members_at_once", f"must be >= 1, got {members_at_once}")
+
+
 def default_members_at_once(devices: Sequence[jax.Device], local_members: int) -> int:
     """How many grid members one device advances together by default.
 
@@ -126,10 +132,11 @@ class GridTrainer:
     The grid axis (seeds × ratios) is split across `devices` with a 1-D mesh;
     a grid that does not divide evenly is padded with copies of its last
     member, whose results are dropped. On each device, `members_at_once`
-    members (rounded down to a divisor of the device's share) are vmapped together and such groups run one after another inside
-    the same compiled program (`jax.lax.map`); the default is
-    `default_members_at_once`. Results do not depend on it beyond float
-    rounding. `train_step` donates the state, so the replay buffers are updated in place.
+    members (rounded down to a divisor of the device's share) are vmapped
+    together, and such groups run one after another inside the same compiled
+    program (`jax.lax.map`); the default is `default_members_at_once`. Results
+    do not depend on it beyond float rounding. `train_step` donates the state,
+    so the replay buffers are updated in place.
     """
 
     def __init__(self, config: Config, env: Env, devices: Sequence[jax.Device] | None = None,
@@ -140,8 +147,7 @@ class GridTrainer:
         self.grid_size = config.grid_size
         self.padded_size = -(-self.grid_size // len(self.devices)) * len(self.devices)
         local = self.padded_size // len(self.devices)
-        if members_at_once is not None and members_at_once < 1:
-            raise ConfigError("members_at_once", f"must be >= 1, got {members_at_once}")
+        check_members_at_once(members_at_once)
         wanted = min(members_at_once or default_members_at_once(self.devices, local), local)
         self.members_at_once = max(k for k in range(1, wanted + 1) if local % k == 0)  # equal groups
         mesh, spec = Mesh(np.array(self.devices), ("grid",)), PartitionSpec("grid")

@@ -1,4 +1,4 @@
-"""How an epoch's wall time scales with the grid size G (runs vmapped together) and the number of agents N.
+"""How an epoch's wall time scales with the grid size G (runs trained in one program) and the number of agents N.
 
     python experiments/bench/grid_scaling.py                          # G = 1..32 at N = 3, then N = 1..4 at G = 1
     python experiments/bench/grid_scaling.py --modes vmap             # only the whole grid vmapped (the GPU default)
@@ -127,7 +127,7 @@ def main(args: Args) -> dict:
         full = built[-1][4]["full"]
         print(f"  built N={n} G={g} {mode}: first epoch (compile + run) {full.first:.1f} s", flush=True)
         if full.retraced:
-            print(f"  WARNING N={n} G={g}: the state's types changed in the first epoch, so the second epoch "
+            print(f"  WARNING N={n} G={g} {mode}: the state's types changed in the first epoch, so the second epoch "
                   f"compiled again ({full.second:.1f} s): " + "; ".join(full.retraced), flush=True)
     for r in range(args.reps):  # ... then time epochs round-robin, so load changes hit every configuration alike
         for *_, runs in built:
