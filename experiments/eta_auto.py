@@ -20,7 +20,7 @@ import numpy as np
 import tyro
 
 from ccp_jax.config import AUTO
-from common import SCALES, eta_label, final_success, mean_std, read_json, results_folder, run_grid, write_text
+from common import DOMAINS, SCALES, eta_label, final_success, mean_std, read_json, results_folder, run_grid, write_text
 from table1 import run_dir, train_domain
 
 NORMALISERS = ("ema", "floor")
@@ -78,7 +78,7 @@ def main(args: Args) -> str:
                 run_grid(scale.config(domain, "csac", etas=[(AUTO,)], normaliser=normaliser),
                          run_dir(out, domain, f"csac_auto_{normaliser}"))
     lines = ["| domain | CSAC variant | final success | per seed | env steps to first success |", "|---|---|---|---|---|"]
-    for domain in args.domains:
+    for domain in DOMAINS:  # every domain trained in `out`, not only this call's: earlier rows are kept
         lines += domain_rows(out, domain)
     text = ("\n".join(lines) + f"\n\nScale `{args.scale}` (see experiments/README.md); the same seeds in every row. "
             "Final success: mean of the last 10 epochs' evaluation; first success: mean over the seeds that ever "

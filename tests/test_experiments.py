@@ -110,6 +110,9 @@ def test_eta_auto_rows_compare_auto_variants_with_the_best_swept_ratio(maze2_run
     assert rows[1] == "| maze2 | auto, batch normaliser | 0.83 ± 0.17 | 1.00 0.67 | 300 (2/2 seeds) |"
     assert rows[2] == "| maze2 | auto, floor normaliser | 0.67 ± 0.33 | 1.00 0.33 | 400 (2/2 seeds) |"
     assert len(rows) == 3  # no ema run: no row
+    # A call for another domain rewrites eta_auto.md with the maze2 rows kept.
+    text = eta_auto.main(eta_auto.Args(scale="smoke", domains=("maze3",), out=maze2_runs, table_only=True))
+    assert rows[0] in text.splitlines() and (maze2_runs / "eta_auto.md").read_text() == text
 
 
 def test_tp_primitives_are_the_naive_member_that_got_furthest():
