@@ -132,18 +132,29 @@ def curves(groups: dict[Group, list[Series]], metric: str = "success_rate",
     return ax.figure
 
 
-def ratio_grid(run_dirs: Sequence[str | Path], key: str = "final_success") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(eta1[A], eta2[B], values[A, B]) from summary.json: `key` averaged over seeds per (η1, η2).
+def ratio_cells(run_dirs: Sequence[str | Path], key: str = "final_success") -> dict[tuple[float, float], list[float]]:
+    """{(η1, η2): [`key` per seed]} from the summary.json of runs of a 3-stage task (eta vectors (η1, η2, 1)).
 
-    For the independent-ratio sweep of a 3-stage task (eta vectors (η1, η2, 1));
-    cells no run trained are NaN.
+    Members with an "auto" ratio are left out; a (pair, seed) found in several
+    runs counts once, from the first run listed.
     """
-    cells: dict[tuple[float, float], list[float]] = defaultdict(list)
+    cells: dict[tuple[float, float], dict[int, float]] = defaultdict(dict)
     for run_dir in map(Path, run_dirs):
         for m in json.loads((Path(run_dir) / "summary.json").read_text())["members"]:
             if len(m["eta"]) < 3:
                 raise ValueError(f"{run_dir}: eta {m['eta']} has no independent (η1, η2) pair")
-            cells[(m["eta"][0], m["eta"][1])].append(m[key])
+            pair = tuple(m["eta"][:2])
+            if all(isinstance(x, (int, float)) for x in pair):
+                cells[pair].setdefault(m["seed"], m[key])
+    return {pair: list(by_seed.values()) for pair, by_seed in cells.items()}
+
+
+def ratio_grid(run_dirs: Sequence[str | Path], key: str = "final_success") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(eta1[A], eta2[B], values[A, B]): `key` averaged over seeds per (η1, η2), see `ratio_cells`.
+
+    Cells no run trained are NaN.
+    """
+    cells = ratio_cells(run_dirs, key)
     eta1, eta2 = sorted({a for a, _ in cells}), sorted({b for _, b in cells})
     values = np.full((len(eta1), len(eta2)), np.nan)
     for (a, b), v in cells.items():

@@ -2,23 +2,28 @@
 
     python experiments/independent_ratios.py --scale cpu
     python experiments/independent_ratios.py --scale paper     # 10 seeds, η1, η2 ∈ {0.1, …, 1.0}
+    python experiments/independent_ratios.py --scale cpu --pairs 0.1,1.0 1.0,0.1   # some pairs only
 
 All (η1, η2) pairs × seeds are one vmapped grid call (`--eta-per-agent`),
-written to OUT/maze3/csac_pairs/. The best pair is set beside the best shared
-ratio of the same scale, taken from table1.py's 3-room run if it exists
-(OUT_TABLE1/maze3/csac/). Writes heatmap.png and independent_ratios.md.
+written to OUT/maze3/csac_pairs/ (a `--pairs` subset to csac_pairs_<pairs>/).
+The table and heatmap gather every pairs run in OUT, plus the shared ratios of
+table1.py's 3-room run of the same scale (OUT_TABLE1/maze3/csac/) on the
+diagonal; the best pair is set beside the best shared ratio. Writes
+heatmap.png and independent_ratios.md.
 """
 from __future__ import annotations
 
 import dataclasses
 import itertools
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Literal, Optional, Sequence
 
 import numpy as np
 import tyro
 
 from ccp_jax import plot
+from ccp_jax.config import AUTO, ConfigError
+from ccp_jax.train import parse_eta
 from common import (PAPER_INDEPENDENT, SCALES, final_success, fmt, mean_std, read_json, results_folder, run_grid,
                     write_text)
 
@@ -30,42 +35,72 @@ SEEDS = {"paper": 10, "cpu": 3, "smoke": 1}
 @dataclasses.dataclass
 class Args:
     scale: Literal["cpu", "paper", "smoke"] = "cpu"
+    pairs: Optional[tuple[str, ...]] = None
+    """(η1,η2) pairs to train instead of the scale's full grid, e.g. --pairs 0.1,1.0 1.0,0.1: a run of its own
+    (OUT/maze3/csac_pairs_<pairs>). The table and heatmap gather every pairs run in OUT."""
     out: Optional[Path] = None
     """Results folder (default experiments/results/independent_ratios_<scale>)."""
     table1_out: Optional[Path] = None
-    """Where table1.py's runs of the same scale are (default experiments/results/table1_<scale>)."""
+    """Where table1.py's runs of the same scale are (default experiments/results/table1_<scale>); its shared
+    ratios fill the diagonal (η1 = η2) where no pairs run has them."""
     table_only: bool = False
 
 
-def pairs_config(scale_name: str):
+Pair = tuple[float, float]
+
+
+def parse_pairs(texts: Optional[Sequence[str]]) -> Optional[list[Pair]]:
+    """['0.1,1.0', ...] -> [(0.1, 1.0), ...]; ConfigError naming `pairs` for anything but two numbers."""
+    if texts is None:
+        return None
+    pairs = []
+    for text in texts:
+        pair = tuple(parse_eta(x, "pairs") for x in text.split(","))
+        if len(pair) != 2 or AUTO in pair:
+            raise ConfigError("pairs", f"a pair is two numbers η1,η2 in [0, 1], got {text!r}")
+        pairs.append(pair)
+    return pairs
+
+
+def pairs_config(scale_name: str, pairs: Optional[Sequence[Pair]] = None):
+    """The grid of `pairs` (default: every pair of the scale's axis) × the scale's seeds, 3-room maze."""
     axis = AXES[scale_name]
-    pairs = [(a, b) for a, b in itertools.product(axis, axis)]
+    pairs = list(pairs or itertools.product(axis, axis))
     return SCALES[scale_name].config("maze3", "csac", etas=pairs, seeds=SEEDS[scale_name])
 
 
-def report(summary: dict, shared: Optional[dict], scale_name: str, out: Path) -> str:
-    cells = {eta[:2]: v for eta, v in final_success(summary).items()}
+def pairs_folder(out: Path, pairs: Optional[Sequence[Pair]] = None) -> Path:
+    name = "csac_pairs" if pairs is None else "csac_pairs_" + "_".join(f"{a:g}-{b:g}" for a, b in pairs)
+    return out / "maze3" / name
+
+
+def report(cells: dict[Pair, list[float]], shared: Optional[dict], scale_name: str, out: Path, env_steps: int) -> str:
+    """independent_ratios.md: the best pair next to the best shared ratio and the paper's, then every pair."""
     best_pair = max(sorted(cells), key=lambda p: np.mean(cells[p]))
+    seeds = sorted({len(v) for v in cells.values()})
     lines = [f"# Independent ratios, 3-room maze (scale `{scale_name}`)", "",
-             f"{len(next(iter(cells.values())))} seeds per pair, {summary['members'][0]['env_steps']:,} env steps; "
+             f"{'/'.join(map(str, seeds))} seeds per pair, {env_steps:,} env steps; "
              "final success = mean of the last 10 epochs' evaluation.", "",
              "| | ours | paper (10 seeds, 3M steps) |", "|---|---|---|",
              f"| best pair (η1, η2) | {best_pair}: {mean_std(cells[best_pair])} | "
              f"{PAPER_INDEPENDENT['best_pair']}: {fmt(PAPER_INDEPENDENT['best_pair_success'])} |"]
     if shared is not None:
-        by_eta = {eta: v for eta, v in final_success(shared).items() if "auto" not in eta}
+        by_eta = {eta: v for eta, v in final_success(shared).items() if AUTO not in eta}
         best_shared = max(sorted(by_eta), key=lambda e: np.mean(by_eta[e]))
         lines.append(f"| best shared η (table1.py) | {best_shared[0]:g}: {mean_std(by_eta[best_shared])} | "
                      f"0.1: {fmt(PAPER_INDEPENDENT['best_shared_success'])} |")
     else:
         lines.append("| best shared η | table1.py's 3-room run not found | "
                      f"0.1: {fmt(PAPER_INDEPENDENT['best_shared_success'])} |")
-    lines += ["", "All pairs (η1 rows, η2 columns), mean ± std over seeds:", ""]
+    lines += ["", "Every pair trained (η1 rows, η2 columns), mean ± std over seeds; blank: not trained"
+              + (" (the diagonal comes from table1.py's shared ratios where no pairs run has it)" if shared else "")
+              + ":", ""]
     axis1, axis2 = sorted({p[0] for p in cells}), sorted({p[1] for p in cells})
     lines.append("| η1 \\ η2 | " + " | ".join(f"{b:g}" for b in axis2) + " |")
     lines.append("|---|" + "---|" * len(axis2))
     for a in axis1:
-        lines.append(f"| {a:g} | " + " | ".join(mean_std(cells.get((a, b), [])) for b in axis2) + " |")
+        lines.append(f"| {a:g} | " + " | ".join(mean_std(cells[(a, b)]) if (a, b) in cells else ""
+                                                for b in axis2) + " |")
     text = "\n".join(lines) + "\n"
     write_text(out / "independent_ratios.md", text)
     return text
@@ -74,19 +109,27 @@ def report(summary: dict, shared: Optional[dict], scale_name: str, out: Path) ->
 def main(args: Args) -> str:
     out = results_folder(args.out, "independent_ratios", args.scale)
     table1_out = results_folder(args.table1_out, "table1", args.scale)
-    folder = out / "maze3" / "csac_pairs"
+    pairs = parse_pairs(args.pairs)
     if not args.table_only:
-        run_grid(pairs_config(args.scale), folder)
-    summary = read_json(folder / "summary.json")
-    eta1, eta2, values = plot.ratio_grid([folder])
+        run_grid(pairs_config(args.scale, pairs), pairs_folder(out, pairs))
+    runs = sorted((out / "maze3").glob("csac_pairs*/summary.json"))
+    if not runs:
+        raise SystemExit(f"error: no finished pairs run in {out / 'maze3'}")
+    shared_path = table1_out / "maze3" / "csac" / "summary.json"
+    shared = read_json(shared_path) if shared_path.exists() else None
+    folders = [r.parent for r in runs] + ([shared_path.parent] if shared else [])
+    cells = plot.ratio_cells(folders)
+    eta1, eta2, values = plot.ratio_grid(folders)
     fig = plot.heatmap(values, eta1, eta2, title=f"3-room maze, final success ({args.scale} scale)")
     fig.savefig(out / "heatmap.png")
-    shared_path = table1_out / "maze3" / "csac" / "summary.json"
-    text = report(summary, read_json(shared_path) if shared_path.exists() else None, args.scale, out)
+    text = report(cells, shared, args.scale, out, read_json(runs[0])["members"][0]["env_steps"])
     print(text)
     print(f"wrote {out / 'heatmap.png'}")
     return text
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    try:
+        main(tyro.cli(Args))
+    except ConfigError as err:  # bad input: one line naming the field
+        raise SystemExit(f"error: {err}") from None

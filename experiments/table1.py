@@ -26,7 +26,8 @@ from typing import Literal, Optional
 import numpy as np
 import tyro
 
-from ccp_jax.config import AUTO
+from ccp_jax.config import AUTO, ConfigError
+from ccp_jax.train import parse_eta
 from common import (DOMAINS, PAPER_TABLE1, SCALES, eta_label, final_success, fmt, mean_std, read_json, results_folder,
                     run_grid, write_text)
 
@@ -41,6 +42,9 @@ class Args:
     """Any of maze2, maze3, maze4, peg, and pusher (Brax's, issue 11: not in the paper)."""
     algos: tuple[str, ...] = ("csac", "sac", "naive", "tp")
     """tp runs last: its primitives are the domain's Naive agents."""
+    etas: Optional[tuple[str, ...]] = None
+    """CSAC ratios to sweep instead of the scale's (numbers in [0, 1] or auto), e.g. --etas 0.9 auto. A partial
+    sweep is its own run: to complete it later with another set, move its csac folder away first."""
     tp_primitives_member: int | Literal["best"] = "best"
     """Which Naive grid member (seed) provides TP's primitives; best: highest final success, then final return."""
     out: Optional[Path] = None
@@ -59,15 +63,15 @@ def best_member(summary: dict) -> int:
 
 
 def train_domain(scale_name: str, domain: str, algos: tuple[str, ...], out: Path,
-                 primitives_member: int | Literal["best"] = "best") -> None:
-    """Trains (or resumes, or skips) every algorithm's grid of one domain.
+                 primitives_member: int | Literal["best"] = "best", etas: Optional[tuple[str, ...]] = None) -> None:
+    """Trains (or resumes, or skips) every algorithm's grid of one domain; CSAC sweeps `etas` or the scale's.
 
     TP's frozen primitives are member `primitives_member` (or the best member) of this domain's Naive run,
     trained first, so every TP seed reuses one set of primitives, as in the paper.
     """
     scale = SCALES[scale_name]
     for algo in sorted(algos, key=lambda a: a == "tp"):
-        etas = [(e,) for e in scale.etas] if algo == "csac" else [(1.0,)]
+        ratios = [(parse_eta(str(e), "etas"),) for e in (etas or scale.etas)] if algo == "csac" else [(1.0,)]
         extra = {}
         if algo == "tp":
             naive = run_dir(out, domain, "naive")
@@ -78,7 +82,7 @@ def train_domain(scale_name: str, domain: str, algos: tuple[str, ...], out: Path
                                  "folder and run again to retrain Naive, deterministically, with them kept")
             member = best_member(read_json(naive / "summary.json")) if primitives_member == "best" else primitives_member
             extra = dict(primitives=str(naive), primitives_member=member)
-        run_grid(scale.config(domain, algo, etas=etas, **extra), run_dir(out, domain, algo),
+        run_grid(scale.config(domain, algo, etas=ratios, **extra), run_dir(out, domain, algo),
                  keep_checkpoints=algo == "naive" and "tp" in algos)
 
 
@@ -162,7 +166,7 @@ def main(args: Args) -> str:
     every = tuple(DOMAINS)  # the table covers every domain trained in `out`, not only this call's
     if not args.table_only:
         for domain in args.domains:
-            train_domain(args.scale, domain, args.algos, out, args.tp_primitives_member)
+            train_domain(args.scale, domain, args.algos, out, args.tp_primitives_member, args.etas)
             write_table(out, every, ALGOS, args.scale)
     text = write_table(out, every, ALGOS, args.scale)
     print(text)
@@ -170,4 +174,7 @@ def main(args: Args) -> str:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    try:
+        main(tyro.cli(Args))
+    except ConfigError as err:  # bad input: one line naming the field
+        raise SystemExit(f"error: {err}") from None

@@ -82,11 +82,36 @@ def test_independent_ratio_report_names_the_best_pair(tmp_path):
     assert [eta for eta, _ in config.grid] == [(0.1, 0.1, 1.0), (0.1, 1.0, 1.0), (1.0, 0.1, 1.0), (1.0, 1.0, 1.0)]
     folder = tmp_path / "pairs"
     _fake_run(folder, config, {0: [0, 0], 1: [1, 1], 2: [0, 1], 3: [0, 0]})
-    text = independent_ratios.report(common.read_json(folder / "summary.json"), None, "smoke", tmp_path)
+    cells = independent_ratios.plot.ratio_cells([folder])
+    text = independent_ratios.report(cells, None, "smoke", tmp_path, 400)
     assert "| best pair (η1, η2) | (0.1, 1.0): 1.00 ± 0.00 | (0.1, 1.0): 0.78 |" in text
     assert "| 1 | 0.50 ± 0.00 | 0.00 ± 0.00 |" in text
     eta1, eta2, values = independent_ratios.plot.ratio_grid([folder])
     np.testing.assert_allclose(values, [[0.0, 1.0], [0.5, 0.0]])
+
+
+def test_independent_ratio_subset_joins_the_shared_diagonal_once(tmp_path):
+    """A --pairs run and table1's shared ratios make one grid; auto members and repeated (pair, seed) are dropped."""
+    pairs = independent_ratios.parse_pairs(["0.1,1.0", "1,0.1"])
+    assert pairs == [(0.1, 1.0), (1.0, 0.1)]
+    folder = independent_ratios.pairs_folder(tmp_path, pairs)
+    assert folder.name == "csac_pairs_0.1-1_1-0.1"
+    _fake_run(folder, independent_ratios.pairs_config("smoke", pairs), {0: [1, 1], 1: [0, 1]})  # one seed each
+    shared = tmp_path / "table1" / "maze3" / "csac"
+    config = common.SCALES["smoke"].config("maze3", "csac", etas=[(0.1,), ("auto",)])
+    _fake_run(shared, config, {0: [0, 0], 1: [0, 1], 2: [1, 1], 3: [1, 1]})
+    _fake_run(tmp_path / "maze3" / "csac_pairs", independent_ratios.pairs_config("smoke", [(0.1, 0.1)]),
+              {0: [1, 1]})  # seed 0 of the shared run's η = 0.1 as well: the pairs run's value is kept
+    cells = independent_ratios.plot.ratio_cells([tmp_path / "maze3" / "csac_pairs", folder, shared])
+    assert cells == {(0.1, 1.0): [1.0], (1.0, 0.1): [0.5], (0.1, 0.1): [1.0, 0.5]}
+    text = independent_ratios.main(independent_ratios.Args(scale="smoke", out=tmp_path, table1_out=tmp_path / "table1",
+                                                           table_only=True))
+    assert "| best shared η (table1.py) | 0.1: 0.25 ± 0.25 | 0.1: 0.54 |" in text
+    assert "| 1 | 0.50 ± 0.00 |  |" in text and "1/2 seeds per pair" in text
+    assert (tmp_path / "heatmap.png").read_bytes()[:4] == b"\x89PNG"
+    for bad in (["0.1"], ["0.1,auto"], ["0.1,x"]):
+        with pytest.raises(ConfigError, match="^pairs: "):
+            independent_ratios.parse_pairs(bad)
 
 
 def test_tp_needs_the_domains_naive_run_as_primitives(tmp_path):
@@ -121,3 +146,16 @@ def test_tp_primitives_are_the_naive_member_that_got_furthest():
                dict(member=2, final_success=0.3, final_return=700.0)]
     assert table1.best_member(dict(members=members)) == 2  # success first, then return
     assert table1.best_member(dict(members=members[:1])) == 0
+
+
+def test_table1_etas_narrow_the_csac_sweep_and_bad_ratios_name_the_field(tmp_path, monkeypatch):
+    grids = []
+    monkeypatch.setattr(table1, "run_grid", lambda config, folder, **_: grids.append((config, folder)))
+    table1.train_domain("smoke", "maze4", ("csac", "sac"), tmp_path, etas=("0.9", "auto"))
+    (csac, csac_dir), (sac, _) = grids
+    assert csac.etas == ((0.9,), ("auto",)) and csac_dir == tmp_path / "maze4" / "csac"
+    assert sac.etas == ((1.0,),)  # only CSAC sweeps ratios
+    for bad, message in (("1.5", "^eta: ratios must be numbers in"), ("x", "^etas: cannot read 'x'")):
+        with pytest.raises(ConfigError, match=message):
+            table1.train_domain("smoke", "maze2", ("csac",), tmp_path, etas=(bad,))
+    assert not (tmp_path / "maze2").exists()

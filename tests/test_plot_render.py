@@ -93,7 +93,7 @@ def test_heatmap_and_ratio_grid(tmp_path):
     for i, etas in enumerate([[(0.1, 0.5), (0.5, 0.5)], [(0.1, 0.9)]]):
         run = tmp_path / f"sweep{i}"
         run.mkdir()
-        members = [{"eta": [a, b, 1.0], "final_success": a + b + seed} for a, b in etas for seed in (0, 1)]
+        members = [{"eta": [a, b, 1.0], "seed": seed, "final_success": a + b + seed} for a, b in etas for seed in (0, 1)]
         (run / "summary.json").write_text(json.dumps({"members": members}))
         runs.append(run)
     eta1, eta2, values = plot.ratio_grid(runs)
