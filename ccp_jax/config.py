@@ -30,6 +30,16 @@ class ConfigError(ValueError):
         self.field = field
 
 
+def parse_eta(text: str, field: str = "eta") -> float | str:
+    """A ratio as typed: '0.3' -> 0.3, 'auto' -> AUTO; ConfigError naming `field` otherwise (the range is checked by Config)."""
+    if text.strip() == AUTO:
+        return AUTO
+    try:
+        return float(text)
+    except ValueError:
+        raise ConfigError(field, f"cannot read {text!r}; a ratio is a number in [0, 1] or {AUTO!r}") from None
+
+
 @dataclasses.dataclass(frozen=True)
 class Config:
     """Every resolved field of a run grid. Defaults are the paper's (SPEC §3)."""

@@ -22,8 +22,7 @@ import numpy as np
 import tyro
 
 from ccp_jax import plot
-from ccp_jax.config import AUTO, ConfigError
-from ccp_jax.train import parse_eta
+from ccp_jax.config import AUTO, ConfigError, parse_eta
 from common import (PAPER_INDEPENDENT, SCALES, final_success, fmt, mean_std, read_json, results_folder, run_grid,
                     write_text)
 

@@ -26,8 +26,7 @@ from typing import Literal, Optional
 import numpy as np
 import tyro
 
-from ccp_jax.config import AUTO, ConfigError
-from ccp_jax.train import parse_eta
+from ccp_jax.config import AUTO, ConfigError, parse_eta
 from common import (DOMAINS, PAPER_TABLE1, SCALES, eta_label, final_success, fmt, mean_std, read_json, results_folder,
                     run_grid, write_text)
 
