@@ -40,6 +40,11 @@ def parse_eta(text: str, field: str = "eta") -> float | str:
         raise ConfigError(field, f"cannot read {text!r}; a ratio is a number in [0, 1] or {AUTO!r}") from None
 
 
+def parse_eta_vector(text: str, field: str = "eta_per_agent") -> tuple[float | str, ...]:
+    """'0.1,1.0' -> (0.1, 1.0); 'auto,1' -> ('auto', 1.0)."""
+    return tuple(parse_eta(x, field) for x in text.split(","))
+
+
 @dataclasses.dataclass(frozen=True)
 class Config:
     """Every resolved field of a run grid. Defaults are the paper's (SPEC §3)."""

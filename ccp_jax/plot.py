@@ -149,17 +149,18 @@ def ratio_cells(run_dirs: Sequence[str | Path], key: str = "final_success") -> d
     return {pair: list(by_seed.values()) for pair, by_seed in cells.items()}
 
 
-def ratio_grid(run_dirs: Sequence[str | Path], key: str = "final_success") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(eta1[A], eta2[B], values[A, B]): `key` averaged over seeds per (η1, η2), see `ratio_cells`.
-
-    Cells no run trained are NaN.
-    """
-    cells = ratio_cells(run_dirs, key)
+def ratio_table(cells: dict[tuple[float, float], list[float]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(eta1[A], eta2[B], values[A, B]) from `ratio_cells`' output: the mean over seeds per (η1, η2); NaN where none."""
     eta1, eta2 = sorted({a for a, _ in cells}), sorted({b for _, b in cells})
     values = np.full((len(eta1), len(eta2)), np.nan)
     for (a, b), v in cells.items():
         values[eta1.index(a), eta2.index(b)] = np.mean(v)
     return np.asarray(eta1), np.asarray(eta2), values
+
+
+def ratio_grid(run_dirs: Sequence[str | Path], key: str = "final_success") -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(eta1[A], eta2[B], values[A, B]): `key` averaged over seeds per (η1, η2) of the runs, see `ratio_cells`."""
+    return ratio_table(ratio_cells(run_dirs, key))
 
 
 def heatmap(values: np.ndarray, eta1: Sequence[float], eta2: Sequence[float], ax: Optional[Axes] = None,

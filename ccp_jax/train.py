@@ -21,7 +21,7 @@ from tqdm.auto import tqdm
 
 from ccp_jax import checkpoint, loggers, outputs
 from ccp_jax.config import (PRESETS, Config, ConfigError, NextAction, Normaliser, PresetName, make_config,
-                             parse_eta)
+                             parse_eta, parse_eta_vector)
 from ccp_jax.envs import make_env, user_env
 from ccp_jax.trainer import check_members_at_once, make_grid_train
 from ccp_jax.tp.primitives import primitives_config
@@ -122,11 +122,6 @@ OVERRIDES = ("total_steps", "num_envs", "hidden", "batch_size", "buffer_size", "
              "absorbing_success", "normaliser", "norm_floor", "norm_ema_rate", "next_action", "tau", "actor_lr",
              "critic_lr", "alpha_lr", "start_steps", "normalise_last", "eta_auto_range",
              "primitives_member", "tp_max_steps", "tp_init_episodes", "tp_prox_updates", "tp_ppo_epochs", "tp_buffer_size")
-
-
-def parse_eta_vector(text: str) -> tuple[float | str, ...]:
-    """'0.1,1.0' -> (0.1, 1.0); 'auto,1' -> ('auto', 1.0)."""
-    return tuple(parse_eta(x, "eta_per_agent") for x in text.split(","))
 
 
 def config_from_args(args: Args, base: Optional[Config] = None) -> Config:

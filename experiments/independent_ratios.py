@@ -22,7 +22,7 @@ import numpy as np
 import tyro
 
 from ccp_jax import plot
-from ccp_jax.config import AUTO, ConfigError, parse_eta
+from ccp_jax.config import AUTO, ConfigError, parse_eta_vector
 from common import (PAPER_INDEPENDENT, SCALES, final_success, fmt, mean_std, read_json, results_folder, run_grid,
                     write_text)
 
@@ -54,7 +54,7 @@ def parse_pairs(texts: Optional[Sequence[str]]) -> Optional[list[Pair]]:
         return None
     pairs = []
     for text in texts:
-        pair = tuple(parse_eta(x, "pairs") for x in text.split(","))
+        pair = parse_eta_vector(text, "pairs")
         if len(pair) != 2 or AUTO in pair:
             raise ConfigError("pairs", f"a pair is two numbers η1,η2 in [0, 1], got {text!r}")
         pairs.append(pair)
@@ -118,7 +118,7 @@ def main(args: Args) -> str:
     shared = read_json(shared_path) if shared_path.exists() else None
     folders = [r.parent for r in runs] + ([shared_path.parent] if shared else [])
     cells = plot.ratio_cells(folders)
-    eta1, eta2, values = plot.ratio_grid(folders)
+    eta1, eta2, values = plot.ratio_table(cells)
     fig = plot.heatmap(values, eta1, eta2, title=f"3-room maze, final success ({args.scale} scale)")
     fig.savefig(out / "heatmap.png")
     text = report(cells, shared, args.scale, out, read_json(runs[0])["members"][0]["env_steps"])

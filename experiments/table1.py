@@ -69,8 +69,9 @@ def train_domain(scale_name: str, domain: str, algos: tuple[str, ...], out: Path
     trained first, so every TP seed reuses one set of primitives, as in the paper.
     """
     scale = SCALES[scale_name]
+    sweep = [parse_eta(e, "etas") for e in etas] if etas else scale.etas
     for algo in sorted(algos, key=lambda a: a == "tp"):
-        ratios = [(parse_eta(str(e), "etas"),) for e in (etas or scale.etas)] if algo == "csac" else [(1.0,)]
+        ratios = [(e,) for e in sweep] if algo == "csac" else [(1.0,)]
         extra = {}
         if algo == "tp":
             naive = run_dir(out, domain, "naive")
