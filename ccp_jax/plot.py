@@ -53,9 +53,11 @@ def load_curves(run_dirs: Sequence[str | Path], metric: str = "success_rate") ->
     """Per (task, algo, eta vector): one (env_steps int64[E], values float64[E]) series per grid member.
 
     Members of the same group from several run folders are pooled (e.g. seeds trained in
-    separate runs). Rows where the metric is undefined are dropped.
+    separate runs); a (group, seed) found in several runs counts once, from the first run
+    listed. Rows where the metric is undefined are dropped.
     """
     groups: dict[Group, list[Series]] = defaultdict(list)
+    seen: set[tuple[Group, int]] = set()
     for run_dir in map(Path, run_dirs):
         config = json.loads((run_dir / "config.json").read_text())
         members: dict[int, list[dict]] = defaultdict(list)
@@ -66,7 +68,10 @@ def load_curves(run_dirs: Sequence[str | Path], metric: str = "success_rate") ->
             points = [(r["env_steps"], v) for r in rows if (v := _value(r, metric)) is not None]
             steps = np.asarray([s for s, _ in points], np.int64)
             values = np.asarray([v for _, v in points], np.float64)
-            groups[(_task(config), rows[0]["algo"], tuple(rows[0]["eta"]))].append((steps, values))
+            group = (_task(config), rows[0]["algo"], tuple(rows[0]["eta"]))
+            if (group, rows[0]["seed"]) not in seen:
+                seen.add((group, rows[0]["seed"]))
+                groups[group].append((steps, values))
     return dict(groups)
 
 

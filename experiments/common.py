@@ -130,6 +130,36 @@ def run_grid(config: Config, out: Path, checkpoint_every: int = 10, log=print, k
     return summary
 
 
+def swept_folder(out: Path, domain: str, etas: Optional[Sequence[float | str]] = None) -> Path:
+    """Where table1.py trains a shared-ratio CSAC sweep: csac/ for the scale's ratios, csac_etas_<ratios>/ for `etas`."""
+    return out / domain / ("csac" if etas is None else "csac_etas_" + "-".join(eta_label(e) for e in etas))
+
+
+def swept_runs(out: Path, domain: str) -> list[Path]:
+    """The finished shared-ratio CSAC runs of a domain: csac/ first, then every csac_etas_*/ subset, sorted."""
+    folders = [out / domain / "csac", *sorted((out / domain).glob("csac_etas_*"))]
+    return [f for f in folders if (f / "summary.json").exists()]
+
+
+def merged_summary(folders: Sequence[Path]) -> Optional[dict]:
+    """The members of several runs' summary.json as one summary (None for no folder).
+
+    An (eta vector, seed) found in several runs counts once, from the first folder
+    listed; each member carries its run's `wall_s`. The merged `wall_s` is the sum.
+    """
+    if not folders:
+        return None
+    seen, members, wall = set(), [], 0.0
+    for folder in folders:
+        summary = read_json(Path(folder) / "summary.json")
+        wall += summary.get("wall_s") or 0.0
+        for m in summary["members"]:
+            if (key := (tuple(m["eta"]), m["seed"])) not in seen:
+                seen.add(key)
+                members.append({**m, "wall_s": summary.get("wall_s")})
+    return {"members": members, "wall_s": wall}
+
+
 def final_success(summary: dict) -> dict[tuple, list[float]]:
     """{eta vector: [final success per seed]} of a summary."""
     by_eta: dict[tuple, list[float]] = {}

@@ -19,7 +19,7 @@ import tyro
 
 from ccp_jax import plot
 from ccp_jax.config import AUTO
-from common import final_success, read_json, results_folder
+from common import final_success, merged_summary, results_folder, swept_runs
 from table1 import run_dir, train_domain
 
 TITLES = {"maze2": "2-room maze", "maze3": "3-room maze", "maze4": "4-room maze", "peg": "peg in hole",
@@ -49,12 +49,13 @@ def domain_groups(out: Path, domain: str, algos: tuple[str, ...], with_auto: boo
     """Curve groups to draw for one domain: the best CSAC ratio (and auto), then each baseline."""
     groups = {}
     for algo in algos:
-        folder = run_dir(out, domain, algo)
-        if not (folder / "summary.json").exists():
+        folders = swept_runs(out, domain) if algo == "csac" else [run_dir(out, domain, algo)]
+        folders = [f for f in folders if (f / "summary.json").exists()]
+        if not folders:
             continue
-        loaded = plot.load_curves([folder])
+        loaded = plot.load_curves(folders)
         if algo == "csac":
-            best = best_eta(read_json(folder / "summary.json"))
+            best = best_eta(merged_summary(folders))
             loaded = {g: s for g, s in loaded.items() if g[2] == best or (with_auto and AUTO in g[2])}
         groups.update(loaded)
     return groups

@@ -20,7 +20,8 @@ import numpy as np
 import tyro
 
 from ccp_jax.config import AUTO
-from common import DOMAINS, SCALES, eta_label, final_success, mean_std, read_json, results_folder, run_grid, write_text
+from common import (DOMAINS, SCALES, eta_label, final_success, mean_std, merged_summary, read_json, results_folder,
+                    run_grid, swept_runs, write_text)
 from table1 import run_dir, train_domain
 
 NORMALISERS = ("ema", "floor")
@@ -49,16 +50,16 @@ def first_text(values: list) -> str:
 
 def domain_rows(out: Path, domain: str) -> list[str]:
     """Markdown rows: the best swept ratio, auto (batch), auto (ema), auto (floor)."""
-    swept_path = run_dir(out, domain, "csac") / "summary.json"
-    if not swept_path.exists():
+    swept = merged_summary(swept_runs(out, domain))
+    if swept is None:
         return []
-    swept = read_json(swept_path)
     success, first = final_success(swept), firsts(swept)
-    numeric = [eta for eta in success if AUTO not in eta]
-    best = max(sorted(numeric), key=lambda eta: np.mean(success[eta]))
-    auto = next(eta for eta in success if AUTO in eta)
-    rows = [(f"best swept η = {eta_label(best[0])}", success[best], first[best]),
-            ("auto, batch normaliser", success[auto], first[auto])]
+    rows = []
+    if numeric := [eta for eta in success if AUTO not in eta]:
+        best = max(sorted(numeric), key=lambda eta: np.mean(success[eta]))
+        rows.append((f"best swept η = {eta_label(best[0])}", success[best], first[best]))
+    if auto := next((eta for eta in success if AUTO in eta), None):
+        rows.append(("auto, batch normaliser", success[auto], first[auto]))
     for normaliser in NORMALISERS:
         path = run_dir(out, domain, f"csac_auto_{normaliser}") / "summary.json"
         if path.exists():

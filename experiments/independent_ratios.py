@@ -23,8 +23,8 @@ import tyro
 
 from ccp_jax import plot
 from ccp_jax.config import AUTO, ConfigError, parse_eta_vector
-from common import (PAPER_INDEPENDENT, SCALES, final_success, fmt, mean_std, read_json, results_folder, run_grid,
-                    write_text)
+from common import (PAPER_INDEPENDENT, SCALES, final_success, fmt, mean_std, merged_summary, read_json,
+                    results_folder, run_grid, swept_runs, write_text)
 
 # Ratio values per axis: the paper's figure spans 0.1 … 1.0; the CPU budget affords three.
 AXES = {"paper": tuple(round(0.1 * k, 1) for k in range(1, 11)), "cpu": (0.1, 0.5, 1.0), "smoke": (0.1, 1.0)}
@@ -114,9 +114,9 @@ def main(args: Args) -> str:
     runs = sorted((out / "maze3").glob("csac_pairs*/summary.json"))
     if not runs:
         raise SystemExit(f"error: no finished pairs run in {out / 'maze3'}")
-    shared_path = table1_out / "maze3" / "csac" / "summary.json"
-    shared = read_json(shared_path) if shared_path.exists() else None
-    folders = [r.parent for r in runs] + ([shared_path.parent] if shared else [])
+    shared_runs = swept_runs(table1_out, "maze3")
+    shared = merged_summary(shared_runs)
+    folders = [r.parent for r in runs] + shared_runs
     cells = plot.ratio_cells(folders)
     eta1, eta2, values = plot.ratio_table(cells)
     fig = plot.heatmap(values, eta1, eta2, title=f"3-room maze, final success ({args.scale} scale)")

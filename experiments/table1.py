@@ -5,7 +5,9 @@
     python experiments/table1.py --scale cpu --table-only       # rebuild the table from finished runs
 
 Each (domain, algorithm) is one grid call, ratios × seeds vmapped, written to
-OUT/<domain>/<algo>/ (config.json, metrics.jsonl, summary.json). Runs are done
+OUT/<domain>/<algo>/ (config.json, metrics.jsonl, summary.json); a subset of the
+CSAC ratios (`--etas`) to OUT/<domain>/csac_etas_<ratios>/, gathered into the
+same table rows. Runs are done
 domain by domain and the table is rewritten after each, so an interrupted
 sweep leaves a partial table and resumes where it stopped. Success is the
 paper's: mean evaluation success over the last 10 epochs, mean ± std over seeds.
@@ -27,8 +29,8 @@ import numpy as np
 import tyro
 
 from ccp_jax.config import AUTO, ConfigError, parse_eta
-from common import (DOMAINS, PAPER_TABLE1, SCALES, eta_label, final_success, fmt, mean_std, read_json, results_folder,
-                    run_grid, write_text)
+from common import (DOMAINS, PAPER_TABLE1, SCALES, eta_label, final_success, fmt, mean_std, merged_summary, read_json,
+                    results_folder, run_grid, swept_folder, swept_runs, write_text)
 
 ALGOS = ("csac", "sac", "naive", "tp")
 
@@ -42,8 +44,9 @@ class Args:
     algos: tuple[str, ...] = ("csac", "sac", "naive", "tp")
     """tp runs last: its primitives are the domain's Naive agents."""
     etas: Optional[tuple[str, ...]] = None
-    """CSAC ratios to sweep instead of the scale's (numbers in [0, 1] or auto), e.g. --etas 0.9 auto. A partial
-    sweep is its own run: to complete it later with another set, move its csac folder away first."""
+    """CSAC ratios to sweep instead of the scale's (numbers in [0, 1] or auto), e.g. --etas 0.9 auto. A subset is
+    its own run (OUT/<domain>/csac_etas_<ratios>/); the table gathers every subset run with the full sweep, so a
+    sweep can be completed piece by piece (--etas 0.1 0.3, later --etas 0.5 0.7)."""
     tp_primitives_member: int | Literal["best"] = "best"
     """Which Naive grid member (seed) provides TP's primitives; best: highest final success, then final return."""
     out: Optional[Path] = None
@@ -69,7 +72,8 @@ def train_domain(scale_name: str, domain: str, algos: tuple[str, ...], out: Path
     trained first, so every TP seed reuses one set of primitives, as in the paper.
     """
     scale = SCALES[scale_name]
-    sweep = [parse_eta(e, "etas") for e in etas] if etas else scale.etas
+    sweep = tuple(parse_eta(e, "etas") for e in etas) if etas else scale.etas
+    csac_dir = swept_folder(out, domain, None if sweep == tuple(scale.etas) else sweep)
     for algo in sorted(algos, key=lambda a: a == "tp"):
         ratios = [(e,) for e in sweep] if algo == "csac" else [(1.0,)]
         extra = {}
@@ -82,7 +86,8 @@ def train_domain(scale_name: str, domain: str, algos: tuple[str, ...], out: Path
                                  "folder and run again to retrain Naive, deterministically, with them kept")
             member = best_member(read_json(naive / "summary.json")) if primitives_member == "best" else primitives_member
             extra = dict(primitives=str(naive), primitives_member=member)
-        run_grid(scale.config(domain, algo, etas=ratios, **extra), run_dir(out, domain, algo),
+        folder = csac_dir if algo == "csac" else run_dir(out, domain, algo)
+        run_grid(scale.config(domain, algo, etas=ratios, **extra), folder,
                  keep_checkpoints=algo == "naive" and "tp" in algos)
 
 
@@ -91,11 +96,12 @@ def collect(out: Path, domains: tuple[str, ...], algos: tuple[str, ...]) -> list
     rows = []
     for domain in domains:
         for algo in algos:
-            path = run_dir(out, domain, algo) / "summary.json"
-            if not path.exists():
+            folders = swept_runs(out, domain) if algo == "csac" else [run_dir(out, domain, algo)]
+            summary = merged_summary([f for f in folders if (f / "summary.json").exists()])
+            if summary is None:
                 continue
-            summary = read_json(path)
             firsts: dict[tuple, list] = {}
+            walls = {tuple(m["eta"]): m["wall_s"] for m in summary["members"]}
             for m in summary["members"]:
                 firsts.setdefault(tuple(m["eta"]), []).append(m["first_success_env_steps"])
             for eta, values in final_success(summary).items():
@@ -103,7 +109,7 @@ def collect(out: Path, domains: tuple[str, ...], algos: tuple[str, ...]) -> list
                 reached = [f for f in firsts[eta] if f is not None]
                 rows.append(dict(algo=algo, eta=key, domain=domain, success=values,
                                  first_success=reached, seeds_succeeded=len(reached),
-                                 env_steps=summary["members"][0]["env_steps"], wall_s=summary.get("wall_s")))
+                                 env_steps=summary["members"][0]["env_steps"], wall_s=walls[eta]))
     return rows
 
 

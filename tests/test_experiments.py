@@ -66,6 +66,25 @@ def test_best_ratio_ignores_auto_and_curves_are_drawn(maze2_runs):
     assert all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in written)
 
 
+def test_subset_sweeps_join_the_table_curves_and_eta_auto_rows_once(maze2_runs):
+    """csac_etas_* runs (table1.py --etas) add their ratios; an (η, seed) already in csac/ keeps csac/'s value."""
+    import eta_auto
+
+    scale = common.SCALES["smoke"]
+    subset = common.swept_folder(maze2_runs, "maze2", (0.1, 0.5))
+    assert subset == maze2_runs / "maze2" / "csac_etas_0.1-0.5"
+    _fake_run(subset, scale.config("maze2", "csac", etas=[(0.1,), (0.5,)]),
+              {0: [1, 1, 1], 1: [1, 1, 1], 2: [1, 1, 1], 3: [0, 1, 1]})  # (0.1, s0), (0.1, s1), (0.5, s0), (0.5, s1)
+    assert common.swept_runs(maze2_runs, "maze2") == [maze2_runs / "maze2" / "csac", subset]
+    lines = table1.write_table(maze2_runs, ("maze2",), ("csac", "sac"), "smoke").splitlines()
+    assert "| CSAC | 0.1 | 0.33 ± 0.33 (1.00) |" in lines  # csac/'s seeds, not the subset's repeats
+    assert "| CSAC | 0.5 | 0.83 ± 0.17 (0.05) |" in lines
+    assert "| CSAC | auto | 0.83 ± 0.17 (–) |" in lines
+    groups = curves.domain_groups(maze2_runs, "maze2", ("csac",), with_auto=False)
+    assert list(groups) == [("maze-2", "csac", (0.5, 1.0))] and len(groups[("maze-2", "csac", (0.5, 1.0))]) == 2
+    assert eta_auto.domain_rows(maze2_runs, "maze2")[0].startswith("| maze2 | best swept η = 0.5 | 0.83 ± 0.17 |")
+
+
 def test_run_grid_skips_a_finished_run_and_refuses_another_config(maze2_runs):
     folder = maze2_runs / "maze2" / "csac"
     config = common.Config.from_dict(json.loads((folder / "config.json").read_text()))
@@ -153,8 +172,10 @@ def test_table1_etas_narrow_the_csac_sweep_and_bad_ratios_name_the_field(tmp_pat
     monkeypatch.setattr(table1, "run_grid", lambda config, folder, **_: grids.append((config, folder)))
     table1.train_domain("smoke", "maze4", ("csac", "sac"), tmp_path, etas=("0.9", "auto"))
     (csac, csac_dir), (sac, _) = grids
-    assert csac.etas == ((0.9,), ("auto",)) and csac_dir == tmp_path / "maze4" / "csac"
+    assert csac.etas == ((0.9,), ("auto",)) and csac_dir == tmp_path / "maze4" / "csac_etas_0.9-auto"
     assert sac.etas == ((1.0,),)  # only CSAC sweeps ratios
+    table1.train_domain("smoke", "maze4", ("csac",), tmp_path, etas=("0.1", "auto"))  # the scale's own set
+    assert grids[-1][1] == tmp_path / "maze4" / "csac"
     for bad, message in (("1.5", "^eta: ratios must be numbers in"), ("x", "^etas: cannot read 'x'")):
         with pytest.raises(ConfigError, match=message):
             table1.train_domain("smoke", "maze2", ("csac",), tmp_path, etas=(bad,))
