@@ -31,6 +31,8 @@ NORMALISERS = ("ema", "floor")
 class Args:
     scale: Literal["cpu", "paper", "smoke"] = "cpu"
     domains: tuple[str, ...] = ("maze2", "maze3", "maze4", "peg")
+    normalisers: tuple[Literal["ema", "floor"], ...] = NORMALISERS
+    """The auto variants to train beside the swept ratios."""
     out: Optional[Path] = None
     """Results folder shared with table1.py (default experiments/results/table1_<scale>)."""
     table_only: bool = False
@@ -75,7 +77,7 @@ def main(args: Args) -> str:
     if not args.table_only:
         for domain in args.domains:
             train_domain(args.scale, domain, ("csac",), out)
-            for normaliser in NORMALISERS:
+            for normaliser in args.normalisers:
                 run_grid(scale.config(domain, "csac", etas=[(AUTO,)], normaliser=normaliser),
                          run_dir(out, domain, f"csac_auto_{normaliser}"))
     lines = ["| domain | CSAC variant | final success | per seed | env steps to first success |", "|---|---|---|---|---|"]

@@ -64,17 +64,33 @@ def best_member(summary: dict) -> int:
     return max(summary["members"], key=lambda m: (m["final_success"], m["final_return"]))["member"]
 
 
+def covered_ratios(out: Path, domain: str, seeds: int) -> set:
+    """The shared ratios (an eta vector's first entry) that finished CSAC runs of `domain` hold for seeds 0..seeds−1."""
+    summary = merged_summary(swept_runs(out, domain))
+    trained: dict = {}
+    for m in summary["members"] if summary else []:
+        trained.setdefault(m["eta"][0], set()).add(m["seed"])
+    return {eta for eta, got in trained.items() if got >= set(range(seeds))}
+
+
 def train_domain(scale_name: str, domain: str, algos: tuple[str, ...], out: Path,
                  primitives_member: int | Literal["best"] = "best", etas: Optional[tuple[str, ...]] = None) -> None:
-    """Trains (or resumes, or skips) every algorithm's grid of one domain; CSAC sweeps `etas` or the scale's.
+    """Trains (or resumes, or skips) every algorithm's grid of one domain.
+
+    CSAC sweeps `etas`, or else the scale's ratios less those that finished `--etas` runs of the domain
+    already hold for every seed (all of them, into csac/, when there are none).
 
     TP's frozen primitives are member `primitives_member` (or the best member) of this domain's Naive run,
     trained first, so every TP seed reuses one set of primitives, as in the paper.
     """
     scale = SCALES[scale_name]
-    sweep = tuple(parse_eta(e, "etas") for e in etas) if etas else scale.etas
+    sweep = tuple(parse_eta(e, "etas") for e in etas) if etas else tuple(scale.etas)
+    if not etas and not (swept_folder(out, domain) / "config.json").exists():
+        sweep = tuple(e for e in sweep if e not in covered_ratios(out, domain, scale.seeds))
     csac_dir = swept_folder(out, domain, None if sweep == tuple(scale.etas) else sweep)
     for algo in sorted(algos, key=lambda a: a == "tp"):
+        if algo == "csac" and not sweep:
+            continue  # every ratio already trained by --etas runs
         ratios = [(e,) for e in sweep] if algo == "csac" else [(1.0,)]
         extra = {}
         if algo == "tp":

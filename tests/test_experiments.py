@@ -176,6 +176,15 @@ def test_table1_etas_narrow_the_csac_sweep_and_bad_ratios_name_the_field(tmp_pat
     assert sac.etas == ((1.0,),)  # only CSAC sweeps ratios
     table1.train_domain("smoke", "maze4", ("csac",), tmp_path, etas=("0.1", "auto"))  # the scale's own set
     assert grids[-1][1] == tmp_path / "maze4" / "csac"
+    # Without --etas, only the ratios no finished run holds for every seed are trained.
+    scale = common.SCALES["smoke"]
+    _fake_run(tmp_path / "maze3" / "csac_etas_0.1", scale.config("maze3", "csac", etas=[(0.1,)]), {0: [0], 1: [1]})
+    table1.train_domain("smoke", "maze3", ("csac",), tmp_path)
+    assert grids[-1][0].etas == (("auto",),) and grids[-1][1] == tmp_path / "maze3" / "csac_etas_auto"
+    _fake_run(grids[-1][1], grids[-1][0], {0: [0], 1: [1]})
+    calls = len(grids)
+    table1.train_domain("smoke", "maze3", ("csac",), tmp_path)
+    assert len(grids) == calls  # all covered: nothing to train
     for bad, message in (("1.5", "^eta: ratios must be numbers in"), ("x", "^etas: cannot read 'x'")):
         with pytest.raises(ConfigError, match=message):
             table1.train_domain("smoke", "maze2", ("csac",), tmp_path, etas=(bad,))
