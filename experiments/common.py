@@ -145,7 +145,7 @@ def merged_summary(folders: Sequence[Path]) -> Optional[dict]:
     """The members of several runs' summary.json as one summary (None for no folder).
 
     An (eta vector, seed) found in several runs counts once, from the first folder
-    listed; each member carries its run's `wall_s`. The merged `wall_s` is the sum.
+    listed; each member carries its run's folder (`run`) and `wall_s`. The merged `wall_s` is the sum.
     """
     if not folders:
         return None
@@ -156,8 +156,20 @@ def merged_summary(folders: Sequence[Path]) -> Optional[dict]:
         for m in summary["members"]:
             if (key := (tuple(m["eta"]), m["seed"])) not in seen:
                 seen.add(key)
-                members.append({**m, "wall_s": summary.get("wall_s")})
+                members.append({**m, "run": str(folder), "wall_s": summary.get("wall_s")})
     return {"members": members, "wall_s": wall}
+
+
+def final_stages(folder: Path) -> dict[int, float]:
+    """{member: the 1-based stage its evaluation episodes end in (N: the last, the goal's), mean over the last
+    10 evaluations (the window of the final success)} of a run: where a member that never succeeds gets stuck."""
+    from ccp_jax import outputs
+
+    by_member: dict[int, list[tuple[int, float]]] = {}
+    for row in outputs.read_rows(Path(folder) / "metrics.jsonl"):
+        by_member.setdefault(row["member"], []).append((row["epoch"], row["stage_reached_mean"]))
+    window = outputs.FINAL_WINDOW
+    return {member: 1.0 + float(np.mean([v for _, v in sorted(rows)[-window:]])) for member, rows in by_member.items()}
 
 
 def final_success(summary: dict) -> dict[tuple, list[float]]:

@@ -29,8 +29,8 @@ import numpy as np
 import tyro
 
 from ccp_jax.config import AUTO, ConfigError, parse_eta
-from common import (DOMAINS, PAPER_TABLE1, SCALES, eta_label, final_success, fmt, mean_std, merged_summary, read_json,
-                    results_folder, run_grid, swept_folder, swept_runs, write_text)
+from common import (DOMAINS, PAPER_TABLE1, SCALES, eta_label, final_stages, final_success, fmt, mean_std,
+                    merged_summary, read_json, results_folder, run_grid, swept_folder, swept_runs, write_text)
 
 ALGOS = ("csac", "sac", "naive", "tp")
 
@@ -117,13 +117,16 @@ def collect(out: Path, domains: tuple[str, ...], algos: tuple[str, ...]) -> list
             if summary is None:
                 continue
             firsts: dict[tuple, list] = {}
+            stages: dict[tuple, list] = {}
             walls = {tuple(m["eta"]): m["wall_s"] for m in summary["members"]}
+            ends = {run: final_stages(Path(run)) for run in {m["run"] for m in summary["members"]}}
             for m in summary["members"]:
                 firsts.setdefault(tuple(m["eta"]), []).append(m["first_success_env_steps"])
+                stages.setdefault(tuple(m["eta"]), []).append(ends[m["run"]][m["member"]])
             for eta, values in final_success(summary).items():
                 key = eta[0] if algo == "csac" else None
                 reached = [f for f in firsts[eta] if f is not None]
-                rows.append(dict(algo=algo, eta=key, domain=domain, success=values,
+                rows.append(dict(algo=algo, eta=key, domain=domain, success=values, stage=stages[eta],
                                  first_success=reached, seeds_succeeded=len(reached),
                                  env_steps=summary["members"][0]["env_steps"], wall_s=walls[eta]))
     return rows
@@ -135,43 +138,49 @@ def paper_value(algo: str, eta, domain: str) -> Optional[float]:
     return PAPER_TABLE1.get(algo, {}).get(domain)
 
 
-def markdown(rows: list[dict], domains: tuple[str, ...], scale_name: str) -> str:
-    """The paper's layout: a row per method (and ratio), a column per domain, 'ours (paper)' in each cell."""
+def method_table(rows: list[dict], domains: tuple[str, ...], cell_text) -> list[str]:
+    """Markdown lines in the paper's layout, a row per method (and ratio), a column per domain: cell_text(row, paper)."""
     methods = sorted({(r["algo"], r["eta"]) for r in rows},
                      key=lambda m: (["csac", "sac", "naive", "tp"].index(m[0]),
                                     2.0 if m[1] == AUTO else (m[1] or 0.0)))
     cell = {(r["algo"], r["eta"], r["domain"]): r for r in rows}
-    header = "| method | η | " + " | ".join(domains) + " |"
-    lines = [header, "|" + "---|" * (len(domains) + 2)]
+    lines = ["| method | η | " + " | ".join(domains) + " |", "|" + "---|" * (len(domains) + 2)]
     for algo, eta in methods:
-        cells = []
-        for domain in domains:
-            r = cell.get((algo, eta, domain))
-            ours = mean_std(r["success"]) if r else "not run"
-            cells.append(f"{ours} ({fmt(paper_value(algo, eta, domain))})")
+        cells = [cell_text(cell.get((algo, eta, domain)), paper_value(algo, eta, domain)) for domain in domains]
         name = {"csac": "CSAC", "sac": "SAC", "naive": "Naive", "tp": "TP"}[algo]
         lines.append(f"| {name} | {eta_label(eta) if algo == 'csac' else ''} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def markdown(rows: list[dict], domains: tuple[str, ...], scale_name: str) -> str:
+    """Table I ('ours (paper)' per cell), then where each method's evaluation episodes end."""
+    success = method_table(rows, domains, lambda r, paper: f"{mean_std(r['success']) if r else 'not run'} ({fmt(paper)})")
+    stages = method_table(rows, domains, lambda r, _: " ".join(f"{v:.1f}" for v in r["stage"]) if r else "")
     budgets = {r["domain"]: r["env_steps"] for r in rows}
     seeds = max((len(r["success"]) for r in rows), default=0)
     note = (f"\nScale `{scale_name}`: {seeds} seeds; env steps per run "
             + ", ".join(f"{d} {budgets[d]:,}" for d in domains if d in budgets)
             + ". Cells: ours, mean ± std over seeds of the final success (last 10 epochs' evaluation); "
               "the paper's Table I in parentheses (5 seeds, 3M steps; '–': not reported).\n")
-    return "\n".join(lines) + "\n" + note
+    where = ("\n## Where the evaluation episodes end\n\nPer seed, the stage (room) the evaluation episodes end in, "
+             "1 = the first, mean over the last 10 evaluations; a success ends in the last stage, so a member at 0.00 "
+             "with a high value got stuck late, one at 1.0 never left the first stage.\n\n")
+    return "\n".join(success) + "\n" + note + where + "\n".join(stages) + "\n"
 
 
 def csv_text(rows: list[dict]) -> str:
     buf = io.StringIO()
     writer = csv.writer(buf)
     writer.writerow(["algo", "eta", "domain", "seeds", "success_mean", "success_std", "success_per_seed",
-                     "seeds_succeeded", "first_success_mean_env_steps", "paper", "env_steps", "wall_s"])
+                     "seeds_succeeded", "first_success_mean_env_steps", "paper", "env_steps", "wall_s",
+                     "final_stage_per_seed"])
     for r in rows:
         first = f"{np.mean(r['first_success']):.0f}" if r["first_success"] else ""
         writer.writerow([r["algo"], "" if r["eta"] is None else eta_label(r["eta"]), r["domain"], len(r["success"]),
                          f"{np.mean(r['success']):.3f}", f"{np.std(r['success']):.3f}",
                          " ".join(f"{v:.2f}" for v in r["success"]), r["seeds_succeeded"], first,
                          fmt(paper_value(r["algo"], r["eta"], r["domain"])), r["env_steps"],
-                         "" if r["wall_s"] is None else f"{r['wall_s']:.0f}"])
+                         "" if r["wall_s"] is None else f"{r['wall_s']:.0f}", " ".join(f"{v:.2f}" for v in r["stage"])])
     return buf.getvalue()
 
 
