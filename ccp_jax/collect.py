@@ -109,6 +109,17 @@ class EvalMetrics(NamedTuple):
     stage_reached_mean: jax.Array  # float32[]: mean 0-based stage at the episode's end
     stage_fraction: jax.Array  # float32[N]: fraction of episodes that reached each stage
     episode_length: jax.Array  # float32[]
+    end_metrics: dict  # {name: float32[]}: the env's other state.metrics at the episodes' end, mean over episodes
+
+
+def episode_metrics(state: State, ret: jax.Array, length: jax.Array, num_stages: int) -> EvalMetrics:
+    """EvalMetrics of a batch of finished episodes: their final states [E, ...], returns and lengths float32[E]."""
+    stage = state.info["stage"]
+    reached = (stage[:, None] >= jnp.arange(num_stages)[None, :]).astype(jnp.float32)
+    return EvalMetrics(success_rate=state.metrics["success"].mean(), eval_return=ret.mean(),
+                       stage_reached_mean=stage.astype(jnp.float32).mean(),
+                       stage_fraction=reached.mean(0), episode_length=length.mean(),
+                       end_metrics={k: v.mean() for k, v in state.metrics.items() if k != "success"})
 
 
 def make_evaluate(config: Config, env: Env, actor: Actor) -> Callable:
@@ -137,10 +148,6 @@ def make_evaluate(config: Config, env: Env, actor: Actor) -> Callable:
             return (_where_done(state.done, state, nxt), ret + live * nxt.reward, length + live, t + 1)
 
         state, ret, length, _ = jax.lax.while_loop(cond, body, (state, zeros, zeros, jnp.int32(0)))
-        stage = state.info["stage"]
-        reached = (stage[:, None] >= jnp.arange(num_stages)[None, :]).astype(jnp.float32)
-        return EvalMetrics(success_rate=state.metrics["success"].mean(), eval_return=ret.mean(),
-                           stage_reached_mean=stage.astype(jnp.float32).mean(),
-                           stage_fraction=reached.mean(0), episode_length=length.mean())
+        return episode_metrics(state, ret, length, num_stages)
 
     return evaluate

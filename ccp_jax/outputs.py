@@ -49,6 +49,8 @@ def metric_rows(config: Config, epoch: int, metrics, wall_s: float) -> list[dict
             "train_success": float(metrics.train_success[member]),
             "train_episodes": int(metrics.train_episodes[member]),
         }
+        if ev.end_metrics:  # env diagnostics at the evaluation episodes' end, e.g. the maze's `pocket`
+            row["eval_end"] = {k: float(v[member]) for k, v in ev.end_metrics.items()}
         row.update(_tp_fields(metrics, member) if config.algo == "tp" else _sac_fields(config, metrics, member))
         row["epoch_wall_s"] = wall_s
         rows.append(row)

@@ -28,6 +28,9 @@ Observation float32[24]:
 Stage and rewards. U = max(U, clip(floor(x / 5), 0, N-1)) at the new position, never
 decreasing. R_n = 1 for n < U, clip((x - 5n) / 5, 0, 1) for n = U, 0 for n > U; on the
 success step every R_n is 1. reward = sum(R).
+
+Metrics: `success`, and `pocket` (1 while the robot is inside a dead-end pocket), which
+evaluation reports at each episode's end: where a failing agent is stuck.
 """
 from __future__ import annotations
 
@@ -240,7 +243,7 @@ class Maze(Env):
             obs=self._observe(pose),
             reward=jnp.sum(rewards),
             done=zero,
-            metrics={"success": zero},
+            metrics={"success": zero, "pocket": self.in_pocket(pose.pos)},
             info={"stage": stage, "rewards": rewards, "truncation": zero, "steps": jnp.zeros((), jnp.int32)},
         )
 
@@ -266,7 +269,7 @@ class Maze(Env):
             obs=self._observe(new_pose),
             reward=jnp.sum(rewards),
             done=(success | timeout).astype(jnp.float32),
-            metrics={**state.metrics, "success": success.astype(jnp.float32)},
+            metrics={**state.metrics, "success": success.astype(jnp.float32), "pocket": self.in_pocket(new_pose.pos)},
             info={
                 **state.info,
                 "stage": stage,
@@ -275,6 +278,19 @@ class Maze(Env):
                 "steps": steps,
             },
         )
+
+    def in_pocket(self, pos: jax.Array) -> jax.Array:
+        """float32[...]: 1 where the robot's centre (pos [..., 2]) is inside a dead-end pocket, else 0.
+
+        A diagnostic (`state.metrics['pocket']`): an evaluation that ends with the robot
+        here took the trap door.
+        """
+        g = self.geometry
+        x, y = pos[..., 0], pos[..., 1]
+        room = jnp.floor(x / g.room_size)  # the pocket behind wall k lies in room k
+        low = jnp.mod(room, 2) == 1  # dead_end_is_low(k): odd walls trap the low door
+        side = jnp.where(low, y < g.pocket_closure_y, y > g.pocket_closure_y)
+        return ((room >= 1) & (x - room * g.room_size < g.pocket_depth) & side).astype(jnp.float32)
 
     def _stage_and_rewards(self, x: jax.Array, prev_stage: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
         """Stage int32[], subtask rewards float32[N] and success bool[] at position x."""

@@ -160,16 +160,22 @@ def merged_summary(folders: Sequence[Path]) -> Optional[dict]:
     return {"members": members, "wall_s": wall}
 
 
-def final_stages(folder: Path) -> dict[int, float]:
-    """{member: the 1-based stage its evaluation episodes end in (N: the last, the goal's), mean over the last
-    10 evaluations (the window of the final success)} of a run: where a member that never succeeds gets stuck."""
+def final_ends(folder: Path) -> dict[int, tuple[float, Optional[float]]]:
+    """{member: (stage, pocket)} of a run, means over the last 10 evaluations (the final success's window): the
+    1-based stage the evaluation episodes end in (N: the last, the goal's), and the fraction that end in a maze's
+    dead-end pocket (None for runs without that metric). Where a member that never succeeds gets stuck."""
     from ccp_jax import outputs
 
-    by_member: dict[int, list[tuple[int, float]]] = {}
+    by_member: dict[int, list[dict]] = {}
     for row in outputs.read_rows(Path(folder) / "metrics.jsonl"):
-        by_member.setdefault(row["member"], []).append((row["epoch"], row["stage_reached_mean"]))
-    window = outputs.FINAL_WINDOW
-    return {member: 1.0 + float(np.mean([v for _, v in sorted(rows)[-window:]])) for member, rows in by_member.items()}
+        by_member.setdefault(row["member"], []).append(row)
+    ends = {}
+    for member, rows in by_member.items():
+        last = sorted(rows, key=lambda r: r["epoch"])[-outputs.FINAL_WINDOW:]
+        pockets = [r["eval_end"]["pocket"] for r in last if "pocket" in r.get("eval_end", {})]
+        ends[member] = (1.0 + float(np.mean([r["stage_reached_mean"] for r in last])),
+                        float(np.mean(pockets)) if len(pockets) == len(last) else None)
+    return ends
 
 
 def final_success(summary: dict) -> dict[tuple, list[float]]:

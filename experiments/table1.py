@@ -29,7 +29,7 @@ import numpy as np
 import tyro
 
 from ccp_jax.config import AUTO, ConfigError, parse_eta
-from common import (DOMAINS, PAPER_TABLE1, SCALES, eta_label, final_stages, final_success, fmt, mean_std,
+from common import (DOMAINS, PAPER_TABLE1, SCALES, eta_label, final_ends, final_success, fmt, mean_std,
                     merged_summary, read_json, results_folder, run_grid, swept_folder, swept_runs, write_text)
 
 ALGOS = ("csac", "sac", "naive", "tp")
@@ -117,16 +117,18 @@ def collect(out: Path, domains: tuple[str, ...], algos: tuple[str, ...]) -> list
             if summary is None:
                 continue
             firsts: dict[tuple, list] = {}
-            stages: dict[tuple, list] = {}
+            ends: dict[tuple, list] = {}
             walls = {tuple(m["eta"]): m["wall_s"] for m in summary["members"]}
-            ends = {run: final_stages(Path(run)) for run in {m["run"] for m in summary["members"]}}
+            runs = {run: final_ends(Path(run)) for run in {m["run"] for m in summary["members"]}}
             for m in summary["members"]:
                 firsts.setdefault(tuple(m["eta"]), []).append(m["first_success_env_steps"])
-                stages.setdefault(tuple(m["eta"]), []).append(ends[m["run"]][m["member"]])
+                ends.setdefault(tuple(m["eta"]), []).append(runs[m["run"]][m["member"]])
             for eta, values in final_success(summary).items():
                 key = eta[0] if algo == "csac" else None
                 reached = [f for f in firsts[eta] if f is not None]
-                rows.append(dict(algo=algo, eta=key, domain=domain, success=values, stage=stages[eta],
+                stage, pocket = zip(*ends[eta])
+                rows.append(dict(algo=algo, eta=key, domain=domain, success=values, stage=stage,
+                                 pocket=None if None in pocket else pocket,
                                  first_success=reached, seeds_succeeded=len(reached),
                                  env_steps=summary["members"][0]["env_steps"], wall_s=walls[eta]))
     return rows
@@ -155,7 +157,8 @@ def method_table(rows: list[dict], domains: tuple[str, ...], cell_text) -> list[
 def markdown(rows: list[dict], domains: tuple[str, ...], scale_name: str) -> str:
     """Table I ('ours (paper)' per cell), then where each method's evaluation episodes end."""
     success = method_table(rows, domains, lambda r, paper: f"{mean_std(r['success']) if r else 'not run'} ({fmt(paper)})")
-    stages = method_table(rows, domains, lambda r, _: " ".join(f"{v:.1f}" for v in r["stage"]) if r else "")
+    per_seed = lambda key: lambda r, _: " ".join(f"{v:.1f}" for v in r[key]) if r and r[key] is not None else ""
+    stages = method_table(rows, domains, per_seed("stage"))
     budgets = {r["domain"]: r["env_steps"] for r in rows}
     seeds = max((len(r["success"]) for r in rows), default=0)
     note = (f"\nScale `{scale_name}`: {seeds} seeds; env steps per run "
@@ -165,7 +168,13 @@ def markdown(rows: list[dict], domains: tuple[str, ...], scale_name: str) -> str
     where = ("\n## Where the evaluation episodes end\n\nPer seed, the stage (room) the evaluation episodes end in, "
              "1 = the first, mean over the last 10 evaluations; a success ends in the last stage, so a member at 0.00 "
              "with a high value got stuck late, one at 1.0 never left the first stage.\n\n")
-    return "\n".join(success) + "\n" + note + where + "\n".join(stages) + "\n"
+    text = "\n".join(success) + "\n" + note + where + "\n".join(stages) + "\n"
+    if any(r["pocket"] is not None for r in rows):
+        pocket_rows = [r for r in rows if r["pocket"] is not None]
+        text += ("\nPer seed, the fraction of the last 10 evaluations' episodes that end inside a dead-end pocket "
+                 "(the maze's trap; runs that logged it):\n\n"
+                 + "\n".join(method_table(pocket_rows, domains, per_seed("pocket"))) + "\n")
+    return text
 
 
 def csv_text(rows: list[dict]) -> str:
@@ -173,14 +182,15 @@ def csv_text(rows: list[dict]) -> str:
     writer = csv.writer(buf)
     writer.writerow(["algo", "eta", "domain", "seeds", "success_mean", "success_std", "success_per_seed",
                      "seeds_succeeded", "first_success_mean_env_steps", "paper", "env_steps", "wall_s",
-                     "final_stage_per_seed"])
+                     "final_stage_per_seed", "final_pocket_per_seed"])
     for r in rows:
         first = f"{np.mean(r['first_success']):.0f}" if r["first_success"] else ""
         writer.writerow([r["algo"], "" if r["eta"] is None else eta_label(r["eta"]), r["domain"], len(r["success"]),
                          f"{np.mean(r['success']):.3f}", f"{np.std(r['success']):.3f}",
                          " ".join(f"{v:.2f}" for v in r["success"]), r["seeds_succeeded"], first,
                          fmt(paper_value(r["algo"], r["eta"], r["domain"])), r["env_steps"],
-                         "" if r["wall_s"] is None else f"{r['wall_s']:.0f}", " ".join(f"{v:.2f}" for v in r["stage"])])
+                         "" if r["wall_s"] is None else f"{r['wall_s']:.0f}", " ".join(f"{v:.2f}" for v in r["stage"]),
+                         "" if r["pocket"] is None else " ".join(f"{v:.2f}" for v in r["pocket"])])
     return buf.getvalue()
 
 

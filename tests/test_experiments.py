@@ -26,7 +26,8 @@ def _fake_run(folder: Path, config, success_by_member: dict[int, list[float]]) -
         for epoch, s in enumerate(success_by_member[member], start=1):
             rows.append(dict(member=member, seed=seed, eta=list(eta), algo=config.algo, epoch=epoch,
                              env_steps=epoch * config.steps_per_epoch, success_rate=s, eval_return=10.0 * s,
-                             stage_reached_mean=s * (config.num_stages - 1)))  # a success ends in the last stage
+                             stage_reached_mean=s * (config.num_stages - 1),  # a success ends in the last stage
+                             eval_end={"pocket": 1.0 - s}))  # and a failure in the pocket
     outputs.write_rows(folder / "metrics.jsonl", rows)
     outputs.write_json(folder / "summary.json", outputs.summarise(config, rows, wall_s=1.0))
 
@@ -51,11 +52,13 @@ def test_table_cells_are_mean_std_over_seeds_next_to_the_paper(maze2_runs):
     assert "| SAC |  | 0.17 ± 0.17 (1.00) |" in lines
     assert not any(line.startswith("| Naive") for line in lines)  # not run: no row
     # Where episodes end, per seed (1-based stage): seed 0 of η = 0.1 succeeded in 2 of 3 evaluations.
-    assert "| CSAC | 0.1 | 1.7 1.0 |" in lines[lines.index("## Where the evaluation episodes end"):]
+    where = lines[lines.index("## Where the evaluation episodes end"):]
+    assert "| CSAC | 0.1 | 1.7 1.0 |" in where
+    assert "| CSAC | 0.1 | 0.3 1.0 |" in where[where.index("| CSAC | 0.1 | 1.7 1.0 |") + 1:]  # the pocket table
     csv_rows = (maze2_runs / "table.csv").read_text().splitlines()
     assert csv_rows[0].startswith("algo,eta,domain,seeds,success_mean")
     row = next(r for r in csv_rows if r.startswith("csac,0.1,maze2"))
-    assert ",0.333,0.333,0.67 0.00,1," in row and row.endswith(",1.67 1.00")  # per seed; seeds that succeeded
+    assert ",0.333,0.333,0.67 0.00,1," in row and row.endswith(",1.67 1.00,0.33 1.00")  # per seed
 
 
 def test_best_ratio_ignores_auto_and_curves_are_drawn(maze2_runs):

@@ -199,12 +199,14 @@ def test_scripted_controller_through_good_doors_reaches_goal(mazes, rooms):
                 s, idx = carry
                 a, idx = act(s.pipeline_state, idx)
                 s = env.step(s, a)
-                return (s, idx), (s.metrics["success"], s.done, s.info["truncation"], s.info["rewards"], s.reward)
+                return (s, idx), (s.metrics["success"], s.done, s.info["truncation"], s.info["rewards"], s.reward,
+                                  s.metrics["pocket"])
             return jax.lax.scan(body, (env.reset(key), jnp.int32(0)), None, length=1000)[1]
         return jax.vmap(episode)(keys)
 
-    success, done, trunc, rewards, reward = map(np.asarray, run(jax.random.split(jax.random.PRNGKey(rooms), 8)))
+    success, done, trunc, rewards, reward, pocket = map(np.asarray, run(jax.random.split(jax.random.PRNGKey(rooms), 8)))
     assert success.any(axis=1).all(), "some episode never reached the goal"
+    assert not pocket.any(), "the good doors never lead into a pocket"
     first = success.argmax(axis=1)  # < 1000 steps since the scan has 1000
     i = np.arange(len(first))
     assert np.all(done[i, first] == 1) and np.all(trunc[i, first] == 0)
@@ -234,7 +236,18 @@ def test_greedy_straight_path_ends_in_next_pocket(mazes, rooms):
         x, y = pos[-1, j]
         assert x == pytest.approx(x_next + 2.0 - R, abs=0.01), f"entry {entries[j]} stopped at x={x}"
         assert (y < 2.5) if dead_end_is_low(k + 1) else (y > 2.5), f"entry {entries[j]} not in pocket (y={y})"
+        assert float(c.env.in_pocket(jnp.asarray(pos[-1, j]))) == 1.0, "the pocket metric misses it"
         assert not success[:, j].any()
+
+
+def test_pocket_metric_at_hand_picked_positions(mazes):
+    env = mazes(4).env
+    inside = [(6.0, 1.0), (5.2, 2.3), (11.0, 4.0), (16.5, 0.5)]  # wall 1 low, wall 2 high, wall 3 low
+    outside = [(4.0, 1.0), (6.0, 3.5), (8.0, 1.0), (11.0, 1.0), (16.5, 4.0), (1.0, 1.0), (19.5, 1.0)]
+    np.testing.assert_array_equal(np.asarray(env.in_pocket(jnp.asarray(inside + outside))),
+                                  [1.0] * len(inside) + [0.0] * len(outside))
+    start = env.state_at(jnp.array([6.0, 1.0]), jnp.float32(0.0))
+    assert float(start.metrics["pocket"]) == 1.0 and float(env.step(start, jnp.zeros(2)).metrics["pocket"]) == 1.0
 
 
 def test_stage_monotone_and_rewards_follow_definition(mazes):
@@ -365,13 +378,15 @@ def test_jit_vmap_1024_shapes_and_dtypes(mazes):
     # reset and step agree on every leaf's shape and dtype, so lax.scan can carry the state.
     chex.assert_trees_all_equal_shapes_and_dtypes(s0, s)
     chex.assert_shape(s.obs, (B, 24))
-    chex.assert_type([s.obs, s.reward, s.done, s.metrics["success"], s.info["rewards"], s.info["truncation"]], jnp.float32)
+    chex.assert_type([s.obs, s.reward, s.done, s.metrics["success"], s.metrics["pocket"], s.info["rewards"],
+                      s.info["truncation"]], jnp.float32)
     chex.assert_type([s.info["stage"], s.info["steps"]], jnp.int32)
-    chex.assert_shape([s.reward, s.done, s.info["stage"], s.info["truncation"], s.info["steps"], s.metrics["success"]], (B,))
+    chex.assert_shape([s.reward, s.done, s.info["stage"], s.info["truncation"], s.info["steps"], s.metrics["success"],
+                       s.metrics["pocket"]], (B,))
     chex.assert_shape(s.info["rewards"], (B, 3))
     chex.assert_shape([s.pipeline_state.pos, s.pipeline_state.heading], [(B, 2), (B,)])
     chex.assert_tree_all_finite([s0.obs, s.obs])
-    assert set(s.info) == {"stage", "rewards", "truncation", "steps"} and set(s.metrics) == {"success"}
+    assert set(s.info) == {"stage", "rewards", "truncation", "steps"} and set(s.metrics) == {"success", "pocket"}
     pos, heading = np.asarray(s0.pipeline_state.pos), np.asarray(s0.pipeline_state.heading)
     assert pos[:, 0].min() >= 0.5 and pos[:, 0].max() <= 1.0 and pos[:, 0].std() > 0.1
     assert pos[:, 1].min() >= 1.25 and pos[:, 1].max() <= 1.75

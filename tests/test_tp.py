@@ -214,7 +214,7 @@ def test_cli_runs_tp_and_writes_the_contract_files(primitives_run, tmp_path):
                 "stage_fraction", "tp_samples", "tp_won", "tp_lost", "prox_loss", "pi_loss", "v_loss",
                 "tp_eval_transition_fraction", "tp_init_env_steps"):
         assert key in rows[0], key
-    assert len(rows[0]["tp_samples"]) == 1 and len(rows[0]["stage_fraction"]) == 2
+    assert len(rows[0]["tp_samples"]) == 1 and len(rows[0]["stage_fraction"]) == 2 and "pocket" in rows[0]["eval_end"]
     assert [r["env_steps"] for r in rows if r["member"] == 0] == [200, 400]
     assert all(np.isfinite(r["prox_loss"][0]) and np.isfinite(r["pi_loss"][0]) for r in rows)
     saved = json.loads((out / "summary.json").read_text())

@@ -45,6 +45,9 @@ def test_epoch_shapes_and_dtypes(grid_run):
     # Every collected step went to exactly one agent's buffer.
     np.testing.assert_array_equal(m.buffer_size.sum(1), [400] * g)
     assert np.all(np.isfinite(m.train.q_loss)) and np.all(m.eval.stage_fraction[:, 0] == 1.0)
+    # The env's other metrics at the episodes' end (the maze's pocket), a fraction of the episodes.
+    assert set(m.eval.end_metrics) == {"pocket"} and m.eval.end_metrics["pocket"].shape == (g,)
+    assert np.all((m.eval.end_metrics["pocket"] >= 0) & (m.eval.end_metrics["pocket"] <= 1))
 
 
 def test_state_keeps_its_avals_across_an_epoch(grid_run):
@@ -113,6 +116,7 @@ def test_cli_writes_the_contract_files(tmp_path):
                 "stage_reached_mean", "q_loss", "pi_loss", "alpha", "eta_star"):
         assert key in rows[0], key
     assert rows[0]["eta"] == [0.1, 1.0, 1.0] and len(rows[0]["q_loss"]) == 3 and rows[0]["eta_star"][2] is None
+    assert set(rows[0]["eval_end"]) == {"pocket"}
     saved = json.loads((out / "summary.json").read_text())
     assert [m["seed"] for m in saved["members"]] == [0, 1] == [m["seed"] for m in summary["members"]]
     assert all(0.0 <= m["final_success"] <= 1.0 for m in saved["members"])

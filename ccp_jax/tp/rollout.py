@@ -24,7 +24,7 @@ import jax.numpy as jnp
 from brax.envs.base import Env, State
 from flax import struct
 
-from ccp_jax.collect import EvalMetrics, _where_done, policy_mean_and_log_std
+from ccp_jax.collect import _where_done, episode_metrics, policy_mean_and_log_std
 from ccp_jax.config import Config
 from ccp_jax.networks import deterministic_action
 from ccp_jax.tp.networks import Proximity, RunningNorm, TransitionPolicy, Value, normalise
@@ -226,12 +226,7 @@ def make_evaluate(config: Config, env: Env, nets: TPNets) -> Callable:
 
         carry = (state, mode, zeros, zeros, zeros, jnp.int32(0))
         state, _, ret, length, moved, _ = jax.lax.while_loop(cond, body, carry)
-        stage = state.info["stage"]
-        reached = (stage[:, None] >= jnp.arange(num_stages)[None, :]).astype(jnp.float32)
-        metrics = EvalMetrics(success_rate=state.metrics["success"].mean(), eval_return=ret.mean(),
-                              stage_reached_mean=stage.astype(jnp.float32).mean(),
-                              stage_fraction=reached.mean(0), episode_length=length.mean())
-        return metrics, moved.sum() / jnp.maximum(length.sum(), 1.0)
+        return episode_metrics(state, ret, length, num_stages), moved.sum() / jnp.maximum(length.sum(), 1.0)
 
     return evaluate
 
