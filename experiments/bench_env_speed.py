@@ -34,7 +34,6 @@ from pathlib import Path  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import jax  # noqa: E402
-import jax.numpy as jnp  # noqa: E402
 
 # Default scan lengths per batch size: long enough to time, short enough for a 2-core CPU.
 DEFAULT_STEPS = {1: 200, 64: 40, 1024: 8}

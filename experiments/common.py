@@ -178,6 +178,16 @@ def final_ends(folder: Path) -> dict[int, tuple[float, Optional[float]]]:
     return ends
 
 
+def best_swept_eta(summary: dict) -> Optional[tuple]:
+    """The numeric ratio vector (auto excluded) with the best mean final success; ties (e.g. all 0.00) go to
+    the best mean final return, i.e. the agents that got furthest. None if there is no numeric ratio."""
+    by_eta: dict[tuple, list[tuple[float, float]]] = {}
+    for m in summary["members"]:
+        if AUTO not in m["eta"]:
+            by_eta.setdefault(tuple(m["eta"]), []).append((m["final_success"], m["final_return"]))
+    return max(sorted(by_eta), key=lambda eta: tuple(np.mean(by_eta[eta], axis=0)), default=None)
+
+
 def final_success(summary: dict) -> dict[tuple, list[float]]:
     """{eta vector: [final success per seed]} of a summary."""
     by_eta: dict[tuple, list[float]] = {}

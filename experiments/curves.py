@@ -14,12 +14,11 @@ import dataclasses
 from pathlib import Path
 from typing import Literal, Optional
 
-import numpy as np
 import tyro
 
 from ccp_jax import plot
 from ccp_jax.config import AUTO
-from common import final_success, merged_summary, results_folder, swept_runs
+from common import best_swept_eta, merged_summary, results_folder, swept_runs
 from table1 import run_dir, train_domain
 
 TITLES = {"maze2": "2-room maze", "maze3": "3-room maze", "maze4": "4-room maze", "peg": "peg in hole",
@@ -39,12 +38,6 @@ class Args:
     """Only draw from the runs already finished; never train."""
 
 
-def best_eta(summary: dict) -> tuple:
-    """The swept ratio vector with the best mean final success (auto excluded)."""
-    swept = {eta: np.mean(v) for eta, v in final_success(summary).items() if AUTO not in eta}
-    return max(sorted(swept), key=lambda eta: swept[eta])
-
-
 def domain_groups(out: Path, domain: str, algos: tuple[str, ...], with_auto: bool) -> dict:
     """Curve groups to draw for one domain: the best CSAC ratio (and auto), then each baseline."""
     groups = {}
@@ -55,7 +48,7 @@ def domain_groups(out: Path, domain: str, algos: tuple[str, ...], with_auto: boo
             continue
         loaded = plot.load_curves(folders)
         if algo == "csac":
-            best = best_eta(merged_summary(folders))
+            best = best_swept_eta(merged_summary(folders))
             loaded = {g: s for g, s in loaded.items() if g[2] == best or (with_auto and AUTO in g[2])}
         groups.update(loaded)
     return groups

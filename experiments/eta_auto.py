@@ -20,7 +20,7 @@ import numpy as np
 import tyro
 
 from ccp_jax.config import AUTO
-from common import (DOMAINS, SCALES, eta_label, final_success, mean_std, merged_summary, read_json, results_folder,
+from common import (DOMAINS, SCALES, best_swept_eta, eta_label, final_success, mean_std, merged_summary, read_json, results_folder,
                     run_grid, swept_runs, write_text)
 from table1 import run_dir, train_domain
 
@@ -57,8 +57,7 @@ def domain_rows(out: Path, domain: str) -> list[str]:
         return []
     success, first = final_success(swept), firsts(swept)
     rows = []
-    if numeric := [eta for eta in success if AUTO not in eta]:
-        best = max(sorted(numeric), key=lambda eta: np.mean(success[eta]))
+    if best := best_swept_eta(swept):
         rows.append((f"best swept η = {eta_label(best[0])}", success[best], first[best]))
     if auto := next((eta for eta in success if AUTO in eta), None):
         rows.append(("auto, batch normaliser", success[auto], first[auto]))

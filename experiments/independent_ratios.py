@@ -23,7 +23,7 @@ import tyro
 
 from ccp_jax import plot
 from ccp_jax.config import AUTO, ConfigError, parse_eta_vector
-from common import (PAPER_INDEPENDENT, SCALES, final_success, fmt, mean_std, merged_summary, read_json,
+from common import (PAPER_INDEPENDENT, SCALES, best_swept_eta, final_success, fmt, mean_std, merged_summary, read_json,
                     results_folder, run_grid, swept_runs, write_text)
 
 # Ratio values per axis: the paper's figure spans 0.1 … 1.0; the CPU budget affords three.
@@ -84,9 +84,8 @@ def report(cells: dict[Pair, list[float]], shared: Optional[dict], scale_name: s
              f"| best pair (η1, η2) | {best_pair}: {mean_std(cells[best_pair])} | "
              f"{PAPER_INDEPENDENT['best_pair']}: {fmt(PAPER_INDEPENDENT['best_pair_success'])} |"]
     if shared is not None:
-        by_eta = {eta: v for eta, v in final_success(shared).items() if AUTO not in eta}
-        best_shared = max(sorted(by_eta), key=lambda e: np.mean(by_eta[e]))
-        lines.append(f"| best shared η (table1.py) | {best_shared[0]:g}: {mean_std(by_eta[best_shared])} | "
+        best_shared = best_swept_eta(shared)
+        lines.append(f"| best shared η (table1.py) | {best_shared[0]:g}: {mean_std(final_success(shared)[best_shared])} | "
                      f"0.1: {fmt(PAPER_INDEPENDENT['best_shared_success'])} |")
     else:
         lines.append("| best shared η | table1.py's 3-room run not found | "

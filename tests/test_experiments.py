@@ -63,7 +63,9 @@ def test_table_cells_are_mean_std_over_seeds_next_to_the_paper(maze2_runs):
 
 def test_best_ratio_ignores_auto_and_curves_are_drawn(maze2_runs):
     summary = common.read_json(maze2_runs / "maze2" / "csac" / "summary.json")
-    assert curves.best_eta(summary) == (0.1, 1.0)
+    assert common.best_swept_eta(summary) == (0.1, 1.0)  # auto (0.83) is not a swept ratio
+    tie = dict(members=[dict(eta=[e, 1.0], final_success=0.0, final_return=r) for e, r in ((0.1, 5.0), (0.9, 7.0))])
+    assert common.best_swept_eta(tie) == (0.9, 1.0)  # all at 0.00: the one that got furthest
     groups = curves.domain_groups(maze2_runs, "maze2", ("csac", "sac"), with_auto=True)
     assert {(g[1], g[2]) for g in groups} == {("csac", (0.1, 1.0)), ("csac", ("auto", 1.0)), ("sac", (1.0,))}
     written = curves.main(curves.Args(scale="smoke", domains=("maze2",), algos=("csac", "sac"), out=maze2_runs,
