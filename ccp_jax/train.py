@@ -226,6 +226,8 @@ def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_e
     bar = tqdm(range(first_epoch, config.num_epochs), initial=first_epoch, total=config.num_epochs,
                desc=f"{config.algo} {config.env} x{config.grid_size}", unit="epoch",
                disable=not (progress and lead), dynamic_ncols=True)
+    # The first epoch includes compiling it: say so, as MJX envs on a CPU compile for minutes.
+    bar.set_postfix_str("compiling the epoch program (once)")
     for epoch in bar:
         t0 = time.time()
         state, metrics = trainer.train_step(state, eta)
