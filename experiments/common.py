@@ -145,19 +145,18 @@ def merged_summary(folders: Sequence[Path]) -> Optional[dict]:
     """The members of several runs' summary.json as one summary (None for no folder).
 
     An (eta vector, seed) found in several runs counts once, from the first folder
-    listed; each member carries its run's folder (`run`) and `wall_s`. The merged `wall_s` is the sum.
+    listed; each member carries its run's folder (`run`) and that run's `wall_s`.
     """
     if not folders:
         return None
-    seen, members, wall = set(), [], 0.0
+    seen, members = set(), []
     for folder in folders:
         summary = read_json(Path(folder) / "summary.json")
-        wall += summary.get("wall_s") or 0.0
         for m in summary["members"]:
             if (key := (tuple(m["eta"]), m["seed"])) not in seen:
                 seen.add(key)
                 members.append({**m, "run": str(folder), "wall_s": summary.get("wall_s")})
-    return {"members": members, "wall_s": wall}
+    return {"members": members}
 
 
 def final_ends(folder: Path) -> dict[int, tuple[float, Optional[float]]]:

@@ -18,8 +18,8 @@ import tyro
 
 from ccp_jax import plot
 from ccp_jax.config import AUTO
-from common import best_swept_eta, merged_summary, results_folder, swept_runs
-from table1 import run_dir, train_domain
+from common import best_swept_eta, merged_summary, results_folder
+from table1 import finished_runs, train_domain
 
 TITLES = {"maze2": "2-room maze", "maze3": "3-room maze", "maze4": "4-room maze", "peg": "peg in hole",
           "pusher": "Brax pusher"}
@@ -42,8 +42,7 @@ def domain_groups(out: Path, domain: str, algos: tuple[str, ...], with_auto: boo
     """Curve groups to draw for one domain: the best CSAC ratio (and auto), then each baseline."""
     groups = {}
     for algo in algos:
-        folders = swept_runs(out, domain) if algo == "csac" else [run_dir(out, domain, algo)]
-        folders = [f for f in folders if (f / "summary.json").exists()]
+        folders = finished_runs(out, domain, algo)
         if not folders:
             continue
         loaded = plot.load_curves(folders)

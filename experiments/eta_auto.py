@@ -20,8 +20,8 @@ import numpy as np
 import tyro
 
 from ccp_jax.config import AUTO
-from common import (DOMAINS, SCALES, best_swept_eta, eta_label, final_success, mean_std, merged_summary, read_json, results_folder,
-                    run_grid, swept_runs, write_text)
+from common import (DOMAINS, SCALES, best_swept_eta, eta_label, final_success, mean_std, merged_summary, read_json,
+                    results_folder, run_grid, swept_runs, write_text)
 from table1 import run_dir, train_domain
 
 NORMALISERS = ("ema", "floor")

@@ -107,13 +107,18 @@ def train_domain(scale_name: str, domain: str, algos: tuple[str, ...], out: Path
                  keep_checkpoints=algo == "naive" and "tp" in algos)
 
 
+def finished_runs(out: Path, domain: str, algo: str) -> list[Path]:
+    """The finished run folders of (domain, algo): for CSAC every shared-ratio sweep run (csac/, csac_etas_*/)."""
+    folders = swept_runs(out, domain) if algo == "csac" else [run_dir(out, domain, algo)]
+    return [f for f in folders if (f / "summary.json").exists()]
+
+
 def collect(out: Path, domains: tuple[str, ...], algos: tuple[str, ...]) -> list[dict]:
     """One row per (algo, eta, domain) from the finished runs: seeds' final successes and first successes."""
     rows = []
     for domain in domains:
         for algo in algos:
-            folders = swept_runs(out, domain) if algo == "csac" else [run_dir(out, domain, algo)]
-            summary = merged_summary([f for f in folders if (f / "summary.json").exists()])
+            summary = merged_summary(finished_runs(out, domain, algo))
             if summary is None:
                 continue
             firsts: dict[tuple, list] = {}
