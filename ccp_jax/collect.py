@@ -77,7 +77,7 @@ def make_collect(config: Config, env: Env, actor: Actor) -> Callable:
         key, k_act, k_rand, k_reset = jax.random.split(key, 4)
         agent = agent_of(config, env_state.info["stage"])
         mean, log_std = policy_mean_and_log_std(actor, actor_params, env_state.obs, agent)
-        policy_action, _ = sample_action(mean, log_std, k_act)
+        policy_action, _ = sample_action(mean, log_std, k_act, config.tanh_log_prob)
         random_action = jax.random.uniform(k_rand, policy_action.shape, minval=-1.0, maxval=1.0)
         action = jnp.where(env_steps < config.start_steps, random_action, policy_action)
 

@@ -19,6 +19,8 @@ Normaliser = Literal["batch", "ema", "floor"]
 NORMALISERS = ("batch", "ema", "floor")
 NextAction = Literal["own", "acting"]
 NEXT_ACTIONS = ("own", "acting")
+TanhLogProb = Literal["rlkit", "exact"]
+TANH_LOG_PROBS = ("rlkit", "exact")
 AUTO = "auto"  # a ratio estimated during training (η*), see `Config.eta_auto_range`
 
 
@@ -84,6 +86,8 @@ class Config:
     # for agent n's batch; "acting" uses π_{n+1} where s' has already entered stage n + 1.
     next_action: NextAction = "own"
     norm_eps: float = 1e-6
+    # The tanh correction of log π (`networks.sample_action`): RLkit's capped form or the exact one.
+    tanh_log_prob: TanhLogProb = "exact"
     # How Q̂ is scaled: "batch" (the paper: batch min/max), "ema" (running min/max),
     # "floor" (batch min, range at least `norm_floor`, in reward units).
     normaliser: Normaliser = "batch"
@@ -233,6 +237,8 @@ class Config:
                     raise ConfigError("eta", f"ratios must be numbers in [0, 1] or {AUTO!r}, got {x!r}")
         if self.next_action not in NEXT_ACTIONS:
             raise ConfigError("next_action", f"unknown rule {self.next_action!r}; choose one of {NEXT_ACTIONS}")
+        if self.tanh_log_prob not in TANH_LOG_PROBS:
+            raise ConfigError("tanh_log_prob", f"unknown form {self.tanh_log_prob!r}; choose one of {TANH_LOG_PROBS}")
         if self.normaliser not in NORMALISERS:
             raise ConfigError("normaliser", f"unknown normaliser {self.normaliser!r}; choose one of {NORMALISERS}")
         if not 0.0 < self.norm_ema_rate <= 1.0:

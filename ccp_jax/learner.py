@@ -9,6 +9,7 @@ wire up without any Python loop over agents.
 """
 from __future__ import annotations
 
+import functools
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -126,6 +127,7 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
     target_entropy = -float(action_size)
     own_ids = jnp.zeros_like(agent_ids) if n_agents == 1 else agent_ids
     actor_apply = jax.vmap(nets.actor.apply)
+    sample = jax.vmap(functools.partial(sample_action, tanh_log_prob=config.tanh_log_prob))
     critic_min = jax.vmap(lambda p, o, a: _min_q(nets.critic, p, o, a))
     critic_twin = jax.vmap(nets.critic.apply)
     soft_target = jax.vmap(losses.soft_target, in_axes=(0, 0, 0, 0, 0, 0, None, None))
@@ -188,7 +190,7 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
         successors = jax.tree.map(lambda x: x[1:], actor)
         mean, log_std = actor_apply(successors, batch.next_obs[:-1])
         keys = jax.vmap(lambda k: jax.random.fold_in(k, 1))(k_next[:-1])
-        act, logp = jax.vmap(sample_action)(mean, log_std, keys)  # [N − 1, B, a], [N − 1, B]
+        act, logp = sample(mean, log_std, keys)  # [N − 1, B, a], [N − 1, B]
         crossed = batch.next_stage[:-1] > agent_ids[:-1, None]  # [N − 1, B]
         lead = slice(0, n_agents - 1)
         return (next_act.at[lead].set(jnp.where(crossed[..., None], act, next_act[lead])),
@@ -203,7 +205,7 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
         # Critic targets with π_n's next action and α_n, for j = n and j = n + 1.
         frozen_actor = jax.lax.stop_gradient(actor)
         next_mean, next_log_std = actor_apply(frozen_actor, batch.next_obs)
-        next_act, next_logp = jax.vmap(sample_action)(next_mean, next_log_std, k_next)
+        next_act, next_logp = sample(next_mean, next_log_std, k_next)
         next_alpha = jnp.broadcast_to(alpha[:, None], next_logp.shape)  # [N, B]
         if acting_next:
             next_act, next_logp, next_alpha = successor_takes_over(frozen_actor, batch, next_act, next_logp,
@@ -217,7 +219,7 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
 
         # Actor: reparameterised a ~ π_n(s), critics held fixed.
         mean, log_std = actor_apply(actor, batch.obs)
-        act, logp = jax.vmap(sample_action)(mean, log_std, k_pi)
+        act, logp = sample(mean, log_std, k_pi)
         frozen = slot_params(jax.lax.stop_gradient(critic))
         q_pi_slots = critic_min(frozen, slot_data(batch.obs), slot_data(act))
         q_pi = q_pi_slots[:n_agents]  # [N, B]
@@ -274,7 +276,7 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
             zeros = jnp.zeros((n_agents,))
             return zeros, zeros
         mean, log_std = actor_apply(agents.actor, batch.obs)
-        act, _ = jax.vmap(sample_action)(mean, log_std, jax.random.split(key, n_agents))
+        act, _ = sample(mean, log_std, jax.random.split(key, n_agents))
         slots = slot_params(agents.critic)
 
         def weighted(a):

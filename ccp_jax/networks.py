@@ -53,16 +53,25 @@ class TwinCritic(nn.Module):
         return twin(self.hidden, 1)(jnp.concatenate([obs, act], -1))[..., 0]
 
 
-def sample_action(mean: jax.Array, log_std: jax.Array, key: jax.Array) -> tuple[jax.Array, jax.Array]:
+def sample_action(mean: jax.Array, log_std: jax.Array, key: jax.Array,
+                  tanh_log_prob: str) -> tuple[jax.Array, jax.Array]:
     """Reparameterised tanh-Gaussian sample and its log-probability.
 
     mean, log_std: [..., a]. Returns action [..., a] in (-1, 1) and log_prob [...].
+    `tanh_log_prob` picks the change-of-variables term log(1 − tanh(u)²):
+    "rlkit" is RLkit's TanhNormal, log(1 − tanh(u)² + 1e-6), whose ε caps the
+    term (and zeroes its gradient) once an action saturates (|u| ≳ 7); "exact"
+    is the closed form, which keeps growing, 2|u| per saturated dimension.
     """
     u = mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape, mean.dtype)
     gauss = -0.5 * (((u - mean) / jnp.exp(log_std)) ** 2 + 2 * log_std + jnp.log(2 * jnp.pi))
-    # log(1 - tanh(u)^2) in a form that stays finite for large |u|.
-    squash = 2.0 * (jnp.log(2.0) - u - jax.nn.softplus(-2.0 * u))
-    return jnp.tanh(u), jnp.sum(gauss - squash, axis=-1)
+    action = jnp.tanh(u)
+    if tanh_log_prob == "rlkit":
+        squash = jnp.log(1.0 - action**2 + 1e-6)
+    else:
+        # log(1 - tanh(u)^2) in a form that stays finite for large |u|.
+        squash = 2.0 * (jnp.log(2.0) - u - jax.nn.softplus(-2.0 * u))
+    return action, jnp.sum(gauss - squash, axis=-1)
 
 
 def deterministic_action(mean: jax.Array) -> jax.Array:

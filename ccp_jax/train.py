@@ -20,8 +20,8 @@ from jax.experimental import multihost_utils
 from tqdm.auto import tqdm
 
 from ccp_jax import checkpoint, loggers, outputs
-from ccp_jax.config import (PRESETS, Config, ConfigError, NextAction, Normaliser, PresetName, make_config,
-                             parse_eta, parse_eta_vector)
+from ccp_jax.config import (PRESETS, Config, ConfigError, NextAction, Normaliser, PresetName, TanhLogProb,
+                             make_config, parse_eta, parse_eta_vector)
 from ccp_jax.envs import make_env, user_env
 from ccp_jax.trainer import check_members_at_once, make_grid_train
 from ccp_jax.tp.primitives import primitives_config
@@ -101,6 +101,8 @@ class Args:
     """Whose action bootstraps critic targets at s': own (the paper's π_n, default) or acting (π_{n+1} once s' is in stage n+1)."""
     absorbing_success: Optional[bool] = None
     """Success bootstraps the absorbing value of all-ones rewards (default on; off = success ends with value 0)."""
+    tanh_log_prob: Optional[TanhLogProb] = None
+    """The tanh correction in log π: exact (default) or rlkit (RLkit's log(1 − tanh² + 1e-6), capped at saturation)."""
     members_at_once: Optional[int] = None
     """Grid members each device advances together (vmapped); the rest run one group after another in the same program. Default: 1 on CPU (fastest there), all on GPU/TPU. Does not change results beyond float rounding."""
     progress: bool = True
@@ -119,7 +121,7 @@ class Args:
 
 OVERRIDES = ("total_steps", "num_envs", "hidden", "batch_size", "buffer_size", "steps_per_epoch",
              "train_loops_per_epoch", "eval_episodes", "max_episode_steps", "gamma", "absorbing_stages",
-             "absorbing_success", "normaliser", "norm_floor", "norm_ema_rate", "next_action", "tau", "actor_lr",
+             "absorbing_success", "tanh_log_prob", "normaliser", "norm_floor", "norm_ema_rate", "next_action", "tau", "actor_lr",
              "critic_lr", "alpha_lr", "start_steps", "normalise_last", "eta_auto_range",
              "primitives_member", "tp_max_steps", "tp_init_episodes", "tp_prox_updates", "tp_ppo_epochs", "tp_buffer_size")
 

@@ -22,6 +22,7 @@ from ccp_jax.train import Args, config_from_args
     (dict(gamma=1.0), "gamma"),
     (dict(hidden=(64, 0)), "hidden"),
     (dict(seeds=(1, 1)), "seeds"),
+    (dict(tanh_log_prob="torch"), "tanh_log_prob"),
     (dict(no_such_field=1), "no_such_field"),
 ])
 def test_bad_config_names_the_field(overrides, field):

@@ -45,7 +45,7 @@ def test_critic_terms_use_pi_n_and_alpha_n_for_both_critics(csac):
     k_next = jax.random.split(key, (2, 2))[0, 0]
     b0 = jax.tree.map(lambda x: x[0], batch)
     mean, log_std = nets.actor.apply(_agent(agents.actor, 0), b0.next_obs)
-    a_next, logp_next = sample_action(mean, log_std, k_next)
+    a_next, logp_next = sample_action(mean, log_std, k_next, config.tanh_log_prob)
     alpha0 = 0.5
     expected = 0.0
     for j in (0, 1):  # j = n and j = n + 1, both with π_0's next action and α_0
@@ -66,8 +66,9 @@ def test_acting_rule_bootstraps_with_the_successor_where_s_next_entered_its_stag
     _, metrics = update(agents, batch, jnp.array([0.3, 1.0]), jnp.array([True, True]), key)
     k_next = jax.random.split(key, (2, 2))[0, 0]
     b0 = jax.tree.map(lambda x: x[0], batch)
-    own = sample_action(*nets.actor.apply(_agent(agents.actor, 0), b0.next_obs), k_next)
-    succ = sample_action(*nets.actor.apply(_agent(agents.actor, 1), b0.next_obs), jax.random.fold_in(k_next, 1))
+    own = sample_action(*nets.actor.apply(_agent(agents.actor, 0), b0.next_obs), k_next, config.tanh_log_prob)
+    succ = sample_action(*nets.actor.apply(_agent(agents.actor, 1), b0.next_obs), jax.random.fold_in(k_next, 1),
+                         config.tanh_log_prob)
     crossed = b0.next_stage > 0  # the first 3 transitions of agent 0's batch entered stage 1
     assert crossed.sum() == 3
     a_next = jnp.where(crossed[:, None], succ[0], own[0])
@@ -138,7 +139,7 @@ def test_running_bounds_and_auto_eta_against_hand_values():
     k_pi = jax.random.split(key, (2, 2))[0, 1]
     b0 = jax.tree.map(lambda x: x[0], batch)
     mean, log_std = nets.actor.apply(_agent(agents.actor, 0), b0.obs)
-    act, _ = sample_action(mean, log_std, k_pi)
+    act, _ = sample_action(mean, log_std, k_pi, config.tanh_log_prob)
     q = [jnp.min(nets.critic.apply(_agent(agents.critic, j), b0.obs, act), 0) for j in (0, 1)]
     lo = np.array([0.1 * float(x.min()) for x in q])  # 0 + 0.1 (min − 0)
     hi = np.array([20.0 + 0.1 * (float(x.max()) - 20.0) for x in q])
@@ -164,3 +165,19 @@ def test_flat_next_critic_pull(normaliser, shrinks):
         assert ratio < 1e-3, pulls
     else:
         assert ratio > 0.1, pulls
+
+
+def test_tanh_log_prob_forms_against_hand_values():
+    """Both forms agree inside (-1, 1); at saturation RLkit's ε caps the correction at log 1e-6, the exact one grows 2|u|."""
+    key = jax.random.PRNGKey(0)
+    log_std = jnp.full((1, 1), -20.0)  # u = mean to float precision
+    gauss = 0.5 * np.log(2 * np.pi) - 20.0  # −log N(u; u, e^-20)
+    for form in ("rlkit", "exact"):
+        a, logp = sample_action(jnp.full((1, 1), 0.5), log_std, key, form)
+        expected = -gauss - np.log(1 - np.tanh(0.5) ** 2)
+        assert float(a[0, 0]) == pytest.approx(np.tanh(0.5))
+        assert float(logp[0]) == pytest.approx(expected, abs=1e-3 if form == "rlkit" else 1e-5)
+    _, rlkit = sample_action(jnp.full((1, 1), 10.0), log_std, key, "rlkit")
+    _, exact = sample_action(jnp.full((1, 1), 10.0), log_std, key, "exact")
+    assert float(rlkit[0]) == pytest.approx(-gauss - np.log(1e-6), abs=1e-3)  # tanh(10) == 1 in float32
+    assert float(exact[0]) == pytest.approx(-gauss - 2 * (np.log(2) - 10.0), abs=1e-3)
