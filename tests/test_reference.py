@@ -27,12 +27,7 @@ OBS, ACT, B, HIDDEN, STEPS = 6, 2, 32, (16, 16), 4
 def fixed_noise_sample(mean, log_std, key, tanh_log_prob="rlkit"):
     """Both implementations draw this same ε whatever their keys (RLkit's log π form)."""
     del key, tanh_log_prob
-    eps = jax.random.normal(jax.random.PRNGKey(7), mean.shape)
-    std = jnp.exp(log_std)
-    u = mean + std * eps
-    a = jnp.tanh(u)
-    logp = jax.scipy.stats.norm.logpdf(u, mean, std).sum(-1) - jnp.log(1.0 - a**2 + 1e-6).sum(-1)
-    return a, logp
+    return reference.gaussian_sample(mean, log_std, jax.random.PRNGKey(7), "rlkit")
 
 
 def _batch(n_agents: int, config: Config, seed: int = 0) -> Transition:

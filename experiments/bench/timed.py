@@ -40,7 +40,26 @@ def avals(tree) -> list[tuple]:
             for p, x in jax.tree_util.tree_flatten_with_path(tree)[0]]
 
 
-class TimedGrid:
+class TimedEpochs:
+    """Times one compiled epoch per `epoch()` call; a subclass's `_step()` advances its state and returns what to wait for."""
+
+    times: list[float]
+
+    def _step(self):
+        raise NotImplementedError
+
+    def epoch(self) -> float:
+        t = time.perf_counter()
+        jax.block_until_ready(self._step())
+        self.times.append(time.perf_counter() - t)
+        return self.times[-1]
+
+    @property
+    def median(self) -> float:
+        return statistics.median(self.times)
+
+
+class TimedGrid(TimedEpochs):
     """The grid trainer of `config`, built, compiled and warmed; `epoch()` runs and times one `train_step`.
 
     `first`: the compiling epoch's seconds; `compile_s`: first minus a warm epoch; `retraced`: leaves
@@ -65,13 +84,6 @@ class TimedGrid:
         self.compile_s = self.first - self.epoch()
         self.times.clear()
 
-    def epoch(self) -> float:
-        t = time.perf_counter()
+    def _step(self):
         self.state, metrics = self.trainer.train_step(self.state, self.eta)
-        jax.block_until_ready((self.state, metrics))
-        self.times.append(time.perf_counter() - t)
-        return self.times[-1]
-
-    @property
-    def median(self) -> float:
-        return statistics.median(self.times)
+        return self.state, metrics

@@ -12,9 +12,7 @@ medians of the warm rounds, compile reported apart.
 from __future__ import annotations
 
 import dataclasses
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import jax
@@ -23,7 +21,7 @@ import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "crosscheck"))
 from reference_csac import Settings, make_run  # noqa: E402
-from timed import TimedGrid  # noqa: E402
+from timed import TimedEpochs, TimedGrid  # noqa: E402
 
 from ccp_jax.config import make_config  # noqa: E402
 from envs_mjx.maze import Maze  # noqa: E402
@@ -35,23 +33,20 @@ class Args:
     rounds: int = 3
 
 
-class TimedReference:
+class TimedReference(TimedEpochs):
     """The reference's vmapped epoch over `grid` seeds, compiled and warmed."""
 
     def __init__(self, grid: int):
         init, epoch = make_run(Settings(), Maze(rooms=2))
         self.state = jax.block_until_ready(jax.vmap(init)(jnp.arange(grid)))
         self.step = jax.jit(jax.vmap(epoch))
-        self.times: list[float] = []
+        self.times = []
         self.compile_s = self.epoch() - self.epoch()
         self.times.clear()
 
-    def epoch(self) -> float:
-        t = time.perf_counter()
-        self.state, m = self.step(self.state)
-        jax.block_until_ready((self.state, m))
-        self.times.append(time.perf_counter() - t)
-        return self.times[-1]
+    def _step(self):
+        self.state, metrics = self.step(self.state)
+        return self.state, metrics
 
 
 def main(args: Args) -> None:
@@ -64,11 +59,11 @@ def main(args: Args) -> None:
         for _ in range(args.rounds):
             for run in runs.values():
                 run.epoch()
-        ref = statistics.median(runs["reference (vmapped)"].times) / grid
+        ref = runs["reference (vmapped)"].median / grid
         print(f"\nG = {grid} (2-room CSAC epoch, median of {args.rounds} rounds)")
         print("| contender | s per run-epoch | vs reference | compile s |\n|---|---|---|---|")
         for name, run in runs.items():
-            per_run = statistics.median(run.times) / grid
+            per_run = run.median / grid
             print(f"| {name} | {per_run:.2f} | {ref / per_run:.2f}x | {run.compile_s:.0f} |")
 
 
