@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import os
 import time
 from pathlib import Path
 from typing import Literal, Optional
@@ -107,6 +108,8 @@ class Args:
     """Grid members each device advances together (vmapped); the rest run one group after another in the same program. Default: 1 on CPU (fastest there), all on GPU/TPU. Does not change results beyond float rounding."""
     progress: bool = True
     """Show a progress bar."""
+    compile_cache: bool = True
+    """Keep compiled programs on disk ($JAX_COMPILATION_CACHE_DIR, else ~/.cache/ccp-jax/xla): a run whose grid size and settings were compiled before (other seeds or ratios, a resume) starts without compiling."""
     tensorboard: bool = True
     """Write TensorBoard event files, one folder per grid member (DIR/tb/member_K)."""
     wandb_project: Optional[str] = None
@@ -251,6 +254,20 @@ def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_e
     return summary
 
 
+def enable_compile_cache() -> Path:
+    """Turns on JAX's persistent compilation cache and returns its folder.
+
+    A folder the user chose (JAX_COMPILATION_CACHE_DIR or jax.config) is kept;
+    otherwise $XDG_CACHE_HOME/ccp-jax/xla (default ~/.cache). Seeds and ratios
+    are inputs of the compiled epoch, not constants, so a sweep of other seeds
+    or ratios at the same grid size reuses the program. Call before compiling.
+    """
+    if not jax.config.jax_compilation_cache_dir:
+        base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
+        jax.config.update("jax_compilation_cache_dir", str(base / "ccp-jax" / "xla"))
+    return Path(jax.config.jax_compilation_cache_dir)
+
+
 def to_host(tree):
     """Numpy copies of (possibly multi-host, sharded) arrays."""
     if jax.process_count() == 1:
@@ -266,6 +283,8 @@ def main(argv: Optional[list[str]] = None) -> dict:
     if args.checkpoint_every < 0:
         raise ConfigError("checkpoint_every", f"must be >= 0, got {args.checkpoint_every}")
     check_members_at_once(args.members_at_once)  # before the run folder is made
+    if args.compile_cache:
+        enable_compile_cache()
     if args.resume is not None:
         config, out = resume_config(args), args.resume
     else:

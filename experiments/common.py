@@ -86,10 +86,15 @@ SCALES = {
 
 def results_folder(out: Optional[Path], name: str, scale: str, domains: Sequence[str] = ()) -> Path:
     """`out`, or experiments/results/<name>_<scale>; exits with a message naming an unknown domain."""
+    check_domains(domains)
+    return out or Path("experiments/results") / f"{name}_{scale}"
+
+
+def check_domains(domains: Sequence[str]) -> None:
+    """Exits with a message naming the field if a domain is unknown."""
     unknown = [d for d in domains if d not in DOMAINS]
     if unknown:
         raise SystemExit(f"error: domains: unknown {unknown}; choose from {tuple(DOMAINS)}")
-    return out or Path("experiments/results") / f"{name}_{scale}"
 
 
 def run_grid(config: Config, out: Path, checkpoint_every: int = 10, log=print, keep_checkpoints: bool = False) -> dict:
@@ -121,6 +126,7 @@ def run_grid(config: Config, out: Path, checkpoint_every: int = 10, log=print, k
     out.mkdir(parents=True, exist_ok=True)
     log(f"{'resuming' if resume else 'training'} {config.algo} on {config.env}"
         f"{'-' + str(config.rooms) if config.env == 'maze' else ''} x{config.grid_size} -> {out}")
+    train.enable_compile_cache()
     start = time.time()
     summary = train.run(config, out, progress=True, resume=resume, checkpoint_every=checkpoint_every,
                         tensorboard=False)

@@ -65,3 +65,21 @@ def test_cli_arguments_resolve():
         config_from_args(Args(seeds=0, preset="tiny"))
     with pytest.raises(ConfigError, match="^eta:"):
         config_from_args(Args(eta=(0.1,), eta_per_agent=("0.1",), preset="tiny"))
+
+
+def test_compile_cache_keeps_the_users_folder_else_uses_xdg_cache(tmp_path, monkeypatch):
+    import jax
+
+    from ccp_jax.train import enable_compile_cache
+
+    before = jax.config.jax_compilation_cache_dir
+    try:
+        jax.config.update("jax_compilation_cache_dir", str(tmp_path / "mine"))
+        assert enable_compile_cache() == tmp_path / "mine"  # a user's (or the test suite's) choice is kept
+        jax.config.update("jax_compilation_cache_dir", None)
+        monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+        assert enable_compile_cache() == tmp_path / "xdg" / "ccp-jax" / "xla"
+        assert jax.config.jax_compilation_cache_dir == str(tmp_path / "xdg" / "ccp-jax" / "xla")
+    finally:
+        jax.config.update("jax_compilation_cache_dir", before)
+    assert Args().compile_cache  # on by default in the CLI

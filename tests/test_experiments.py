@@ -197,3 +197,26 @@ def test_table1_etas_narrow_the_csac_sweep_and_bad_ratios_name_the_field(tmp_pat
         with pytest.raises(ConfigError, match=message):
             table1.train_domain("smoke", "maze2", ("csac",), tmp_path, etas=(bad,))
     assert not (tmp_path / "maze2").exists()
+
+
+def test_paper_projection_builds_table1s_grids_and_sums_the_sweeps():
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments" / "bench"))
+    import paper_projection as pp
+
+    progs = dict(pp.programs(pp.Args(scale="paper", baselines=True), "maze4"))
+    assert progs["csac grid"].grid_size == 10 * 5  # the nine paper ratios and auto, 5 seeds: table1.py's sweep
+    assert progs["csac grid"].hidden == (256, 256) and progs["csac grid"].num_agents == 4
+    assert progs["csac single"].grid_size == 1
+    assert progs["sac"].grid_size == progs["naive"].grid_size == 5
+    assert progs["csac grid"].total_steps // progs["csac grid"].steps_per_epoch == 600
+
+    def row(program, grid, epoch_s, projected_s):
+        return dict(domain="maze4", program=program, grid=grid, agents=4, epoch_s=epoch_s,
+                    per_run_epoch_s=epoch_s / grid, overhead_s=60.0, projected_s=projected_s, device="dev")
+
+    text = pp.report([row("csac grid", 50, 10.0, 7200.0), row("csac single", 1, 2.0, 1800.0),
+                      row("sac", 5, 1.0, 3600.0)])
+    assert "| 0.100× |" in text  # per run 10 / 50 = 0.2 s against 2.0 s alone
+    assert "3.00 h" in text  # the sweeps (csac grid + sac) only; the single run is a probe, not part of Table I
+    with pytest.raises(SystemExit, match="domains"):
+        pp.main(pp.Args(scale="paper", domains=("maze9",)))
