@@ -14,7 +14,7 @@ import math
 import shutil
 import time
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import Literal, Optional, Sequence
 
 import numpy as np
 
@@ -68,6 +68,7 @@ class Scale:
                            **{**self.overrides, **DOMAIN_OVERRIDES.get(domain, {}), **changes})
 
 
+ScaleName = Literal["cpu", "paper", "smoke"]  # the keys of SCALES, as a CLI choice
 SCALES = {
     # The paper's budget (SPEC §3): [256, 256] nets, 1e6 buffers, 3M maze steps, 5 seeds.
     "paper": Scale("paper", seeds=5, etas=PAPER_ETAS + (AUTO,),

@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Optional
 
 import tyro
 
 from ccp_jax import plot
 from ccp_jax.config import AUTO
-from common import best_swept_eta, merged_summary, results_folder
+from common import ScaleName, best_swept_eta, merged_summary, results_folder
 from table1 import finished_runs, train_domain
 
 TITLES = {"maze2": "2-room maze", "maze3": "3-room maze", "maze4": "4-room maze", "peg": "peg in hole",
@@ -27,7 +27,7 @@ TITLES = {"maze2": "2-room maze", "maze3": "3-room maze", "maze4": "4-room maze"
 
 @dataclasses.dataclass
 class Args:
-    scale: Literal["cpu", "paper", "smoke"] = "cpu"
+    scale: ScaleName = "cpu"
     domains: tuple[str, ...] = ("maze2", "maze3", "maze4", "peg")
     algos: tuple[str, ...] = ("csac", "sac", "naive", "tp")
     with_auto: bool = True

@@ -20,8 +20,8 @@ import numpy as np
 import tyro
 
 from ccp_jax.config import AUTO
-from common import (DOMAINS, SCALES, best_swept_eta, eta_label, final_success, mean_std, merged_summary, read_json,
-                    results_folder, run_grid, swept_runs, write_text)
+from common import (DOMAINS, SCALES, ScaleName, best_swept_eta, eta_label, final_success, mean_std, merged_summary,
+                    read_json, results_folder, run_grid, swept_runs, write_text)
 from table1 import run_dir, train_domain
 
 NORMALISERS = ("ema", "floor")
@@ -29,7 +29,7 @@ NORMALISERS = ("ema", "floor")
 
 @dataclasses.dataclass
 class Args:
-    scale: Literal["cpu", "paper", "smoke"] = "cpu"
+    scale: ScaleName = "cpu"
     domains: tuple[str, ...] = ("maze2", "maze3", "maze4", "peg")
     normalisers: tuple[Literal["ema", "floor"], ...] = NORMALISERS
     """The auto variants to train beside the swept ratios."""

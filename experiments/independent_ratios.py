@@ -16,15 +16,15 @@ from __future__ import annotations
 import dataclasses
 import itertools
 from pathlib import Path
-from typing import Literal, Optional, Sequence
+from typing import Optional, Sequence
 
 import numpy as np
 import tyro
 
 from ccp_jax import plot
 from ccp_jax.config import AUTO, ConfigError, parse_eta_vector
-from common import (PAPER_INDEPENDENT, SCALES, best_swept_eta, final_success, fmt, mean_std, merged_summary, read_json,
-                    results_folder, run_grid, swept_runs, write_text)
+from common import (PAPER_INDEPENDENT, SCALES, ScaleName, best_swept_eta, final_success, fmt, mean_std,
+                    merged_summary, read_json, results_folder, run_grid, swept_runs, write_text)
 
 # Ratio values per axis: the paper's figure spans 0.1 … 1.0; the CPU budget affords three.
 AXES = {"paper": tuple(round(0.1 * k, 1) for k in range(1, 11)), "cpu": (0.1, 0.5, 1.0), "smoke": (0.1, 1.0)}
@@ -33,7 +33,7 @@ SEEDS = {"paper": 10, "cpu": 3, "smoke": 1}
 
 @dataclasses.dataclass
 class Args:
-    scale: Literal["cpu", "paper", "smoke"] = "cpu"
+    scale: ScaleName = "cpu"
     pairs: Optional[tuple[str, ...]] = None
     """(η1,η2) pairs to train instead of the scale's full grid, e.g. --pairs 0.1,1.0 1.0,0.1: a run of its own
     (OUT/maze3/csac_pairs_<pairs>). The table and heatmap gather every pairs run in OUT."""

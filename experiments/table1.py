@@ -29,7 +29,7 @@ import numpy as np
 import tyro
 
 from ccp_jax.config import AUTO, ConfigError, parse_eta
-from common import (DOMAINS, PAPER_TABLE1, SCALES, eta_label, final_ends, final_success, fmt, mean_std,
+from common import (DOMAINS, PAPER_TABLE1, SCALES, ScaleName, eta_label, final_ends, final_success, fmt, mean_std,
                     merged_summary, read_json, results_folder, run_grid, swept_folder, swept_runs, write_text)
 
 ALGOS = ("csac", "sac", "naive", "tp")
@@ -37,7 +37,7 @@ ALGOS = ("csac", "sac", "naive", "tp")
 
 @dataclasses.dataclass
 class Args:
-    scale: Literal["cpu", "paper", "smoke"] = "cpu"
+    scale: ScaleName = "cpu"
     """Budget: cpu (hours on a 2-core CPU), paper (3M steps, 5 seeds; needs a GPU), smoke (seconds)."""
     domains: tuple[str, ...] = ("maze2", "maze3", "maze4", "peg")
     """Any of maze2, maze3, maze4, peg, and pusher (Brax's, issue 11: not in the paper)."""
