@@ -20,7 +20,12 @@ This package knows nothing of agents. Every env here follows one contract
   truncation is not a termination and must not stop bootstrapping.
 """
 
+import contextlib
+import importlib.abc
+import importlib.machinery
+import io
 import os
+import sys
 
 # XLA's CPU fusion emitters make MJX ~50x slower on CPU (PEG_NOTES.md); this switches them off.
 XLA_CPU_FLAG = "--xla_cpu_use_fusion_emitters=false"
@@ -36,3 +41,37 @@ def cpu_xla_flags(flags: str | None = None) -> str:
     if "xla_cpu_use_fusion_emitters" in flags:
         return flags
     return (flags + " " + XLA_CPU_FLAG).strip()
+
+
+# mujoco.mjx.warp print()s these two lines at import whenever the optional Warp backend is absent (always,
+# with our pins), which reads like an error at the top of every run; only these lines are dropped.
+_WARP_MODULE = "mujoco.mjx.warp"
+_WARP_NOTICES = ("Failed to import warp:", "Failed to import mujoco_warp:")
+
+
+class _QuietWarpNotice(importlib.abc.MetaPathFinder):
+    """Finds `mujoco.mjx.warp` as usual and runs its import with the two notices filtered out of stdout."""
+
+    def find_spec(self, name, path, target=None):
+        if name != _WARP_MODULE:
+            return None
+        spec = importlib.machinery.PathFinder.find_spec(name, path, target)
+        if spec is None or not hasattr(spec.loader, "exec_module"):
+            return spec
+        exec_module = spec.loader.exec_module
+
+        def quiet_exec_module(module):
+            captured = io.StringIO()
+            try:
+                with contextlib.redirect_stdout(captured):
+                    exec_module(module)
+            finally:  # anything else the import printed still reaches stdout
+                sys.stdout.write("".join(line for line in captured.getvalue().splitlines(keepends=True)
+                                         if not line.startswith(_WARP_NOTICES)))
+
+        spec.loader.exec_module = quiet_exec_module
+        return spec
+
+
+if _WARP_MODULE not in sys.modules and not any(isinstance(f, _QuietWarpNotice) for f in sys.meta_path):
+    sys.meta_path.insert(0, _QuietWarpNotice())
