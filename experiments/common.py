@@ -68,7 +68,6 @@ class Scale:
                            **{**self.overrides, **DOMAIN_OVERRIDES.get(domain, {}), **changes})
 
 
-ScaleName = Literal["cpu", "paper", "smoke"]  # the keys of SCALES, as a CLI choice
 SCALES = {
     # The paper's budget (SPEC §3): [256, 256] nets, 1e6 buffers, 3M maze steps, 5 seeds.
     "paper": Scale("paper", seeds=5, etas=PAPER_ETAS + (AUTO,),
@@ -83,6 +82,7 @@ SCALES = {
     "smoke": Scale("tiny", seeds=2, etas=(0.1, AUTO),
                    total_steps={"maze2": 400, "maze3": 400, "maze4": 400, "peg": 200, "pusher": 200}),
 }
+ScaleName = Literal[tuple(SCALES)]  # the keys of SCALES, as a CLI choice (tyro reads it at run time)
 
 
 def results_folder(out: Optional[Path], name: str, scale: str, domains: Sequence[str] = ()) -> Path:
