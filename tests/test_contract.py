@@ -356,7 +356,7 @@ def test_import_drops_only_mujoco_warp_notices():
     import sys
 
     script = ("import builtins, envs_mjx\n"
-              "_print = builtins.print\n"  # mujoco.mjx.warp's import also prints a line of its own here
+              "_print = builtins.print\n"  # each print of the import below gets a 'kept:' twin the filter must pass
               "builtins.print = lambda *a, **k: (_print(*a, **k), _print('kept:', *a, **k))\n"
               "import brax.envs.base\n"
               "builtins.print = _print\n"
