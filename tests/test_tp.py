@@ -14,7 +14,7 @@ from ccp_jax.tp.networks import Proximity, TransitionPolicy, Value, norm_init, n
 from ccp_jax.tp.ppo import gae
 from ccp_jax.tp.primitives import Primitives
 from ccp_jax.tp.proximity import ProximityData, buffer_add, buffer_init, proximity_loss, proximity_targets
-from ccp_jax.tp.rollout import TPNets, TPParams, control_init, make_rollout
+from ccp_jax.tp.rollout import TPNets, TPParams, control_init, make_initial_successes, make_rollout
 from ccp_jax.tp.trainer import make_tp_train
 from toy_env import Line
 
@@ -104,6 +104,44 @@ def _hand_set_transition(config, env):
     stack = lambda t: jax.tree.map(lambda x: x[None], t)
     norm = jax.tree.map(lambda x: x[None], norm_init(env.observation_size))
     return nets, TPParams(policy=stack(params), proximity=stack(prox), norm=norm)
+
+
+@pytest.mark.parametrize("thresholds", [(0.0, 0.0, 0.0), (0.0, 0.0, 9.0)])
+def test_initial_successes_keep_the_first_states_of_each_completed_stage(thresholds):
+    """The permanent success states against a plain loop over the same episodes. Primitives all run right
+    (every stage completed), or the last one runs left from stage 2 (stage 2 never completed: predictor 1
+    gets nothing)."""
+    config = _line_config(rooms=3, max_episode_steps=30, tp_init_episodes=5, tp_init_fraction=0.3)
+    env, primitives = Line(3, 30), scripted(list(thresholds))
+    key = jax.random.PRNGKey(7)
+    permanent, steps = jax.jit(make_initial_successes(config, env, primitives))(key)
+
+    step = jax.jit(env.step)
+    states = [jax.tree.map(lambda x, i=i: x[i], jax.vmap(env.reset)(jax.random.split(key, 5))) for i in range(5)]
+    trace = []  # per episode: (t, obs, stage) of every live state
+    for state in states:
+        visited = []
+        for t in range(30):
+            if state.done:
+                break
+            visited.append((t, np.asarray(state.obs), int(state.info["stage"])))
+            x = float(state.obs[0])
+            state = step(state, jnp.array([np.tanh(5.0 if x >= thresholds[visited[-1][2]] else -5.0)]))
+        completed = [int(state.info["stage"]) > k or bool(state.metrics["success"]) for k in range(3)]
+        trace.append((visited, completed))
+    expected = {0: [], 1: []}
+    for t in range(30):
+        for visited, completed in trace:
+            for u, obs, stage in visited:
+                in_stage = [v for v, _, k in visited if k == stage]
+                keep = int(np.ceil(0.3 * len(in_stage))) if completed[stage] else 0
+                if u == t and stage >= 1 and u - in_stage[0] < keep:
+                    expected[stage - 1].append(obs)
+    assert int(steps) == sum(len(v) for v, _ in trace)
+    for k in (0, 1):
+        assert int(permanent.size[k]) == len(expected[k])
+        np.testing.assert_allclose(permanent.obs[k, :len(expected[k])], np.reshape(expected[k], (-1, 3)), atol=1e-6)
+    assert len(expected[0]) > 0 and (len(expected[1]) > 0) == (thresholds[2] == 0.0)
 
 
 @pytest.mark.parametrize("succeeds", [True, False])

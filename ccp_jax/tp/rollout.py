@@ -237,53 +237,51 @@ def make_initial_successes(config: Config, env: Env, primitives: Primitives) -> 
     Runs `tp_init_episodes` deterministic episodes of the primitives alone
     (no transitions). For every stage k ≥ 1 that its primitive completed, the
     first `tp_init_fraction` of the states it visited in that stage are
-    stored for predictor k − 1 with label 1. Two passes over the same episodes
-    (same keys, deterministic): the first finds each stage's extent and
-    outcome, the second stores the states, so no trajectory is ever held.
-    The env steps returned are those of one pass.
+    stored for predictor k − 1 with label 1. One pass records every state
+    (obs [T, E, o], T = max_episode_steps: 16 MB for 100 peg episodes) and
+    each stage's extent and outcome; which states to keep is known only once
+    a stage has ended, so they are stored afterwards, step by step as if
+    during the pass. (Two passes that held no trajectory doubled the env
+    steps: 200 k MJX steps per peg member before the first epoch.)
     """
     episodes, num_stages = config.tp_init_episodes, config.num_stages
     v_step, v_reset = jax.vmap(env.step), jax.vmap(env.reset)
     big = jnp.iinfo(jnp.int32).max
 
-    def run(key, visit, acc):
-        """Runs the episodes; `visit(acc, t, state, live) -> acc` sees every state before its step."""
-        state = v_reset(jax.random.split(key, episodes))
+    def initial(key: jax.Array) -> tuple[SegmentBuffer, jax.Array]:
+        horizon = config.max_episode_steps
+        start = jnp.full((episodes, num_stages), big, jnp.int32)
+        trace = (jnp.zeros((horizon, episodes, env.observation_size)), jnp.zeros((horizon, episodes), jnp.int32),
+                 jnp.zeros((horizon, episodes), bool))  # obs, stage and liveness of every state
 
         def cond(carry):
-            return jnp.any(carry[0].done == 0) & (carry[2] < config.max_episode_steps)
+            return jnp.any(carry[0].done == 0) & (carry[-1] < horizon)
 
         def body(carry):
-            state, acc, t = carry
-            live = state.done == 0
-            acc = visit(acc, t, state, live)
-            mean, _ = policy_mean_and_log_std(primitives.actor, primitives.params, state.obs, state.info["stage"])
+            state, start, last, steps, (obs, stages, lives), t = carry
+            live, stage = state.done == 0, state.info["stage"]
+            here = live[:, None] & (stage[:, None] == jnp.arange(num_stages))
+            start, last = jnp.where(here & (start == big), t, start), jnp.where(here, t, last)
+            trace = obs.at[t].set(state.obs), stages.at[t].set(stage), lives.at[t].set(live)
+            mean, _ = policy_mean_and_log_std(primitives.actor, primitives.params, state.obs, stage)
             nxt = v_step(state, deterministic_action(mean))
-            return _where_done(state.done, state, nxt), acc, t + 1
+            return _where_done(state.done, state, nxt), start, last, steps + live.sum(), trace, t + 1
 
-        state, acc, _ = jax.lax.while_loop(cond, body, (state, acc, jnp.int32(0)))
-        return state, acc
-
-    def extent(acc, t, state, live):
-        start, last, steps = acc
-        here = live[:, None] & (state.info["stage"][:, None] == jnp.arange(num_stages))
-        return jnp.where(here & (start == big), t, start), jnp.where(here, t, last), steps + live.sum()
-
-    def initial(key: jax.Array) -> tuple[SegmentBuffer, jax.Array]:
-        start = jnp.full((episodes, num_stages), big, jnp.int32)
-        final, (start, last, steps) = run(key, extent, (start, jnp.zeros_like(start), jnp.int32(0)))
+        carry = (v_reset(jax.random.split(key, episodes)), start, jnp.zeros_like(start), jnp.int32(0), trace,
+                 jnp.int32(0))
+        final, start, last, steps, trace, _ = jax.lax.while_loop(cond, body, carry)
         done_stage = (final.info["stage"][:, None] > jnp.arange(num_stages)) | (final.metrics["success"][:, None] > 0)
         keep = jnp.where(done_stage, jnp.ceil(config.tp_init_fraction * (last - start + 1)), 0).astype(jnp.int32)
 
-        def store(buf, t, state, live):
-            stage = state.info["stage"]
+        def store(buf, step):
+            t, obs_t, stage, live = step
             rank = t - jnp.take_along_axis(start, stage[:, None], 1)[:, 0]
             take = live & (stage >= 1) & (rank < jnp.take_along_axis(keep, stage[:, None], 1)[:, 0])
-            return buffer_add(buf, state.obs[:, None], jnp.ones((episodes, 1)), jnp.maximum(stage - 1, 0),
-                              take.astype(jnp.int32))
+            return buffer_add(buf, obs_t[:, None], jnp.ones((episodes, 1)), jnp.maximum(stage - 1, 0),
+                              take.astype(jnp.int32)), None
 
         empty = buffer_init(num_stages - 1, config.tp_buffer_size, env.observation_size)
-        _, permanent = run(key, store, empty)
+        permanent, _ = jax.lax.scan(store, empty, (jnp.arange(horizon),) + trace)
         return permanent, steps
 
     return initial
