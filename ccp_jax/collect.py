@@ -63,6 +63,17 @@ def _where_done(done: jax.Array, on_done, otherwise):
     return jax.tree.map(sel, on_done, otherwise)
 
 
+def auto_reset(env: Env, nxt: State, key: jax.Array) -> State:
+    """`nxt` [E, ...] with every env whose episode ended replaced by a fresh `env.reset`.
+
+    Resetting is an MJX forward pass on peg; the cond skips it on the steps
+    where no episode ended (under a vmapped grid it becomes a select and
+    costs what an unconditional reset did).
+    """
+    fresh = lambda: _where_done(nxt.done, jax.vmap(env.reset)(jax.random.split(key, nxt.done.shape[0])), nxt)
+    return jax.lax.cond(jnp.any(nxt.done > 0), fresh, lambda: nxt)
+
+
 def make_collect(config: Config, env: Env, actor: Actor) -> Callable:
     """`collect(actor_params, env_state, buffer, key, env_steps) -> (env_state, buffer, stats)`.
 
@@ -70,7 +81,7 @@ def make_collect(config: Config, env: Env, actor: Actor) -> Callable:
     before `config.start_steps` total env steps, actions are uniform random.
     """
     num_envs = config.num_envs
-    v_step, v_reset = jax.vmap(env.step), jax.vmap(env.reset)
+    v_step = jax.vmap(env.step)
 
     def one_step(actor_params, carry, _):
         env_state, buffer, key, env_steps, stats = carry
@@ -90,7 +101,7 @@ def make_collect(config: Config, env: Env, actor: Actor) -> Callable:
                         next_stage=nxt.info["stage"])
         buffer = add(buffer, tr, agent)
         stats = EpisodeStats(stats.episodes + nxt.done.sum(), stats.successes + (nxt.done * success).sum())
-        env_state = _where_done(nxt.done, v_reset(jax.random.split(k_reset, num_envs)), nxt)
+        env_state = auto_reset(env, nxt, k_reset)
         return (env_state, buffer, key, env_steps + num_envs, stats), None
 
     def collect(actor_params, env_state: State, buffer: ReplayBuffer, key: jax.Array, env_steps: jax.Array):

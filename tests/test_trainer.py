@@ -7,6 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from ccp_jax.collect import auto_reset
 from ccp_jax.config import ConfigError, make_config
 from ccp_jax.envs import make_env
 from ccp_jax.train import main
@@ -24,6 +25,22 @@ def _train(config, trainer, epochs):
         state, metrics = trainer.train_step(state, jnp.asarray(eta))
         history.append(jax.device_get(metrics))
     return jax.device_get(state), history
+
+
+@pytest.mark.parametrize("vmapped", [False, True])
+def test_auto_reset_replaces_exactly_the_finished_envs(vmapped):
+    env, key = Line(2, 50), jax.random.PRNGKey(5)
+    state = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(0), 3))
+    moved = jax.vmap(env.step)(state, jnp.ones((3, 1)))
+    fresh = jax.vmap(env.reset)(jax.random.split(key, 3))
+    reset = jax.jit(jax.vmap(auto_reset, (None, 0, None)) if vmapped else auto_reset, static_argnums=0)
+    stack = (lambda t: jax.tree.map(lambda x: jnp.stack([x, x]), t)) if vmapped else (lambda t: t)
+    pick = (lambda x: x[0]) if vmapped else (lambda x: x)
+    for done in ([0.0, 1.0, 0.0], [0.0, 0.0, 0.0], [1.0, 1.0, 1.0]):
+        out = reset(env, stack(moved.replace(done=jnp.array(done))), key)
+        expected = np.where(np.array(done) > 0, fresh.pipeline_state, moved.pipeline_state)
+        np.testing.assert_array_equal(pick(out.pipeline_state), expected)
+        np.testing.assert_array_equal(pick(out.info["steps"]), np.where(np.array(done) > 0, 0, 1))
 
 
 @pytest.fixture(scope="module")

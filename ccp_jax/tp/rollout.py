@@ -24,7 +24,7 @@ import jax.numpy as jnp
 from brax.envs.base import Env, State
 from flax import struct
 
-from ccp_jax.collect import _where_done, episode_metrics, policy_mean_and_log_std
+from ccp_jax.collect import _where_done, auto_reset, episode_metrics, policy_mean_and_log_std
 from ccp_jax.config import Config
 from ccp_jax.networks import deterministic_action
 from ccp_jax.tp.networks import Proximity, RunningNorm, TransitionPolicy, Value, normalise
@@ -138,7 +138,7 @@ def make_rollout(config: Config, env: Env, nets: TPNets) -> Callable:
     stochastic transition policies; rewards use the current predictors.
     """
     num_envs, num_k, max_len = config.num_envs, config.num_stages - 1, config.tp_max_steps + 1
-    v_step, v_reset = jax.vmap(env.step), jax.vmap(env.reset)
+    v_step = jax.vmap(env.step)
 
     def one_step(params: TPParams, carry, key):
         env_state, ctrl, data, stats = carry
@@ -183,7 +183,7 @@ def make_rollout(config: Config, env: Env, nets: TPNets) -> Callable:
                              forced=stats.forced + count(d.forced, d.k),
                              won=stats.won + count(won, pending_policy), lost=stats.lost + count(lost, pending_policy),
                              episodes=stats.episodes + done.sum(), successes=stats.successes + (done & success).sum())
-        env_state = _where_done(nxt.done, v_reset(jax.random.split(k_reset, num_envs)), nxt)
+        env_state = auto_reset(env, nxt, k_reset)
         return (env_state, ctrl, data, stats), sample
 
     def rollout(params: TPParams, env_state: State, ctrl: Control, data: ProximityData, key: jax.Array):
