@@ -225,6 +225,7 @@ def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_e
             outputs.write_rows(metrics_path, rows)
     else:
         first_epoch, state, rows = 0, trainer.init(seed), []
+    start -= sum(r["epoch_wall_s"] for r in rows if r["member"] == 0)  # a resumed run's earlier epochs count too
     if lead:
         outputs.write_json(out / "config.json", config.to_dict())
 

@@ -65,7 +65,13 @@ def test_resume_reproduces_the_uninterrupted_run(uninterrupted, interrupted):
 def test_resume_can_extend_the_budget(tmp_path, uninterrupted):
     out = tmp_path / "run"
     shutil.copytree(uninterrupted, out)
+    earlier = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    for r in earlier:
+        r["epoch_wall_s"] = 1000.0  # as if each of the 3 epochs had taken 1000 s
+    (out / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in earlier))
     main(["--resume", str(out), "--total-steps", "800", "--no-progress"])
+    wall = json.loads((out / "summary.json").read_text())["wall_s"]
+    assert 3000 < wall < 3000 + 600  # the earlier epochs' time plus this invocation's
     rows = _rows(out)
     assert [r["epoch"] for r in rows] == [1, 1, 2, 2, 3, 3, 4, 4]
     assert rows[:6] == _rows(uninterrupted)
