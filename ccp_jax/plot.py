@@ -128,7 +128,7 @@ def curves(groups: dict[Group, list[Series]], metric: str = "success_rate",
     ax.set_xlabel("environment steps")
     ax.xaxis.set_major_formatter(FuncFormatter(_steps_label))
     ax.set_ylabel(metric.replace("_", " "))
-    if metric == "success_rate":
+    if metric == "success_rate" or metric.startswith("stage_fraction"):  # fractions of episodes
         ax.set_ylim(-0.02, 1.02)
     ax.grid(alpha=0.3)
     ax.legend(fontsize="small")

@@ -38,14 +38,18 @@ class Args:
     """Only draw from the runs already finished; never train."""
 
 
-def domain_groups(out: Path, domain: str, algos: tuple[str, ...], with_auto: bool) -> dict:
-    """Curve groups to draw for one domain: the best CSAC ratio (and auto), then each baseline."""
+STAGE2 = "stage_fraction/1"
+
+
+def domain_groups(out: Path, domain: str, algos: tuple[str, ...], with_auto: bool,
+                  metric: str = "success_rate") -> dict:
+    """Curve groups of `metric` to draw for one domain: the best CSAC ratio (and auto), then each baseline."""
     groups = {}
     for algo in algos:
         folders = finished_runs(out, domain, algo)
         if not folders:
             continue
-        loaded = plot.load_curves(folders)
+        loaded = plot.load_curves(folders, metric)
         if algo == "csac":
             best = best_swept_eta(merged_summary(folders))
             loaded = {g: s for g, s in loaded.items() if g[2] == best or (with_auto and AUTO in g[2])}
@@ -63,7 +67,10 @@ def main(args: Args) -> list[Path]:
     for domain, groups in drawn.items():
         path = out / f"curves_{domain}.png"
         plot.curves(groups, title=TITLES[domain]).savefig(path)
-        written.append(path)
+        stage2 = domain_groups(out, domain, args.algos, args.with_auto, STAGE2)
+        plot.curves(stage2, STAGE2, title=f"{TITLES[domain]}: episodes reaching stage 2").savefig(
+            out / f"stage2_{domain}.png")
+        written += [path, out / f"stage2_{domain}.png"]
     if drawn:
         fig = plot.new_figure(4.2 * len(drawn), 3.4)
         for i, (domain, groups) in enumerate(drawn.items()):

@@ -27,6 +27,7 @@ def _fake_run(folder: Path, config, success_by_member: dict[int, list[float]]) -
             rows.append(dict(member=member, seed=seed, eta=list(eta), algo=config.algo, epoch=epoch,
                              env_steps=epoch * config.steps_per_epoch, success_rate=s, eval_return=10.0 * s,
                              stage_reached_mean=s * (config.num_stages - 1),  # a success ends in the last stage
+                             stage_fraction=[1.0] + [s] * (config.num_stages - 1),
                              eval_end={"pocket": 1.0 - s}))  # and a failure in the pocket
     outputs.write_rows(folder / "metrics.jsonl", rows)
     outputs.write_json(folder / "summary.json", outputs.summarise(config, rows, wall_s=1.0))
@@ -68,9 +69,12 @@ def test_best_ratio_ignores_auto_and_curves_are_drawn(maze2_runs):
     assert common.best_swept_eta(tie) == (0.9, 1.0)  # all at 0.00: the one that got furthest
     groups = curves.domain_groups(maze2_runs, "maze2", ("csac", "sac"), with_auto=True)
     assert {(g[1], g[2]) for g in groups} == {("csac", (0.1, 1.0)), ("csac", ("auto", 1.0)), ("sac", (1.0,))}
+    stage2 = curves.domain_groups(maze2_runs, "maze2", ("csac", "sac"), with_auto=True, metric=curves.STAGE2)
+    assert stage2.keys() == groups.keys()
+    assert all(0.0 <= v <= 1.0 for series in stage2.values() for s in series for v in s[1])
     written = curves.main(curves.Args(scale="smoke", domains=("maze2",), algos=("csac", "sac"), out=maze2_runs,
                                       plot_only=True))
-    assert [p.name for p in written] == ["curves_maze2.png", "curves.png"]
+    assert [p.name for p in written] == ["curves_maze2.png", "stage2_maze2.png", "curves.png"]
     assert all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in written)
 
 
@@ -165,6 +169,17 @@ def test_eta_auto_rows_compare_auto_variants_with_the_best_swept_ratio(maze2_run
     # A call for another domain rewrites eta_auto.md with the maze2 rows kept.
     text = eta_auto.main(eta_auto.Args(scale="smoke", domains=("maze3",), out=maze2_runs, table_only=True))
     assert rows[0] in text.splitlines() and (maze2_runs / "eta_auto.md").read_text() == text
+
+
+@pytest.mark.parametrize("sweep", [True, False])
+def test_eta_auto_trains_the_sweep_only_if_asked(tmp_path, monkeypatch, sweep):
+    import eta_auto
+
+    calls = []
+    monkeypatch.setattr(eta_auto, "train_domain", lambda scale, domain, algos, out: calls.append(("sweep", domain)))
+    monkeypatch.setattr(eta_auto, "run_grid", lambda config, out: calls.append((config.normaliser, out.name)))
+    eta_auto.main(eta_auto.Args(scale="smoke", domains=("maze2",), normalisers=("floor",), out=tmp_path, sweep=sweep))
+    assert calls == [("sweep", "maze2")] * sweep + [("floor", "csac_auto_floor")]
 
 
 def test_tp_primitives_are_the_naive_member_that_got_furthest():
