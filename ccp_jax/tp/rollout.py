@@ -242,7 +242,8 @@ def make_initial_successes(config: Config, env: Env, primitives: Primitives) -> 
     each stage's extent and outcome; which states to keep is known only once
     a stage has ended, so they are stored afterwards, step by step as if
     during the pass. (Two passes that held no trajectory doubled the env
-    steps: 200 k MJX steps per peg member before the first epoch.)
+    steps, 200 k MJX steps per peg member, and two differently compiled MJX
+    loops can drift apart: README, TP section.)
     """
     episodes, num_stages = config.tp_init_episodes, config.num_stages
     v_step, v_reset = jax.vmap(env.step), jax.vmap(env.reset)
