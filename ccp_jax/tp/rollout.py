@@ -251,7 +251,6 @@ def make_initial_successes(config: Config, env: Env, primitives: Primitives) -> 
 
     def initial(key: jax.Array) -> tuple[SegmentBuffer, jax.Array]:
         horizon = config.max_episode_steps
-        start = jnp.full((episodes, num_stages), big, jnp.int32)
         trace = (jnp.zeros((horizon, episodes, env.observation_size)), jnp.zeros((horizon, episodes), jnp.int32),
                  jnp.zeros((horizon, episodes), bool))  # obs, stage and liveness of every state
 
@@ -259,18 +258,19 @@ def make_initial_successes(config: Config, env: Env, primitives: Primitives) -> 
             return jnp.any(carry[0].done == 0) & (carry[-1] < horizon)
 
         def body(carry):
-            state, start, last, steps, (obs, stages, lives), t = carry
+            state, (obs, stages, lives), t = carry
             live, stage = state.done == 0, state.info["stage"]
-            here = live[:, None] & (stage[:, None] == jnp.arange(num_stages))
-            start, last = jnp.where(here & (start == big), t, start), jnp.where(here, t, last)
             trace = obs.at[t].set(state.obs), stages.at[t].set(stage), lives.at[t].set(live)
             mean, _ = policy_mean_and_log_std(primitives.actor, primitives.params, state.obs, stage)
             nxt = v_step(state, deterministic_action(mean))
-            return _where_done(state.done, state, nxt), start, last, steps + live.sum(), trace, t + 1
+            return _where_done(state.done, state, nxt), trace, t + 1
 
-        carry = (v_reset(jax.random.split(key, episodes)), start, jnp.zeros_like(start), jnp.int32(0), trace,
-                 jnp.int32(0))
-        final, start, last, steps, trace, _ = jax.lax.while_loop(cond, body, carry)
+        state = v_reset(jax.random.split(key, episodes))
+        final, trace, _ = jax.lax.while_loop(cond, body, (state, trace, jnp.int32(0)))
+        _, stages, lives = trace
+        here = lives[..., None] & (stages[..., None] == jnp.arange(num_stages))  # [T, E, N]: live in stage n at t
+        start = jnp.where(here.any(0), jnp.argmax(here, 0), big)  # first step in each stage (big: never)
+        last = horizon - 1 - jnp.argmax(here[::-1], 0)
         done_stage = (final.info["stage"][:, None] > jnp.arange(num_stages)) | (final.metrics["success"][:, None] > 0)
         keep = jnp.where(done_stage, jnp.ceil(config.tp_init_fraction * (last - start + 1)), 0).astype(jnp.int32)
 
@@ -283,6 +283,6 @@ def make_initial_successes(config: Config, env: Env, primitives: Primitives) -> 
 
         empty = buffer_init(num_stages - 1, config.tp_buffer_size, env.observation_size)
         permanent, _ = jax.lax.scan(store, empty, (jnp.arange(horizon),) + trace)
-        return permanent, steps
+        return permanent, lives.sum()
 
     return initial
