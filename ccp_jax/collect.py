@@ -56,7 +56,7 @@ def policy_mean_and_log_std(actor: Actor, params, obs: jax.Array, agent: jax.Arr
     return pick(mean), pick(log_std)
 
 
-def _where_done(done: jax.Array, on_done, otherwise):
+def where_done(done: jax.Array, on_done, otherwise):
     """Per-env select between two batched pytrees (leaves [E, ...])."""
     def sel(a, b):
         return jnp.where(done.reshape(done.shape + (1,) * (a.ndim - 1)) > 0, a, b)
@@ -70,7 +70,7 @@ def auto_reset(env: Env, nxt: State, key: jax.Array) -> State:
     where no episode ended (under a vmapped grid it becomes a select and
     costs what an unconditional reset did).
     """
-    fresh = lambda: _where_done(nxt.done, jax.vmap(env.reset)(jax.random.split(key, nxt.done.shape[0])), nxt)
+    fresh = lambda: where_done(nxt.done, jax.vmap(env.reset)(jax.random.split(key, nxt.done.shape[0])), nxt)
     return jax.lax.cond(jnp.any(nxt.done > 0), fresh, lambda: nxt)
 
 
@@ -156,7 +156,7 @@ def make_evaluate(config: Config, env: Env, actor: Actor) -> Callable:
             mean, _ = policy_mean_and_log_std(actor, actor_params, state.obs, agent)
             nxt = v_step(state, deterministic_action(mean))
             live = 1.0 - state.done
-            return (_where_done(state.done, state, nxt), ret + live * nxt.reward, length + live, t + 1)
+            return (where_done(state.done, state, nxt), ret + live * nxt.reward, length + live, t + 1)
 
         state, ret, length, _ = jax.lax.while_loop(cond, body, (state, zeros, zeros, jnp.int32(0)))
         return episode_metrics(state, ret, length, num_stages)

@@ -111,6 +111,13 @@ def mean_std(series: Sequence[Series]) -> tuple[np.ndarray, np.ndarray, np.ndarr
             np.asarray([len(v) for v in vals]))
 
 
+def _metric_label(metric: str) -> str:
+    """Axis label: "stage_fraction/k" (metrics of the k-th stage index) reads as stage k + 1 reached."""
+    if metric.startswith("stage_fraction/"):
+        return f"fraction reaching stage {int(metric.split('/')[1]) + 1}"
+    return metric.replace("_", " ")
+
+
 def curves(groups: dict[Group, list[Series]], metric: str = "success_rate",
            ax: Optional[Axes] = None, title: Optional[str] = None) -> Figure:
     """Mean ± std over members of each group vs env steps, one line per group (from `load_curves`).
@@ -127,7 +134,7 @@ def curves(groups: dict[Group, list[Series]], metric: str = "success_rate",
         ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2, linewidth=0)
     ax.set_xlabel("environment steps")
     ax.xaxis.set_major_formatter(FuncFormatter(_steps_label))
-    ax.set_ylabel(metric.replace("_", " "))
+    ax.set_ylabel(_metric_label(metric))
     if metric == "success_rate" or metric.startswith("stage_fraction"):  # fractions of episodes
         ax.set_ylim(-0.02, 1.02)
     ax.grid(alpha=0.3)

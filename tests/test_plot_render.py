@@ -57,6 +57,14 @@ def test_plot_per_agent_metric_and_bad_metric(run_dir, tmp_path):
         plot.main([str(run_dir), "--metric", "no_such_metric"])
 
 
+def test_stage_fraction_plot_is_labelled_by_stage_and_spans_fractions(run_dir):
+    groups = plot.load_curves([run_dir], "stage_fraction/1")
+    ax = plot.curves(groups, "stage_fraction/1").axes[0]
+    assert ax.get_ylabel() == "fraction reaching stage 2"
+    assert ax.get_ylim() == (-0.02, 1.02)
+    assert plot.curves(groups, "q_loss/1").axes[0].get_ylabel() == "q loss/1"
+
+
 def test_plot_labels_keep_runs_of_one_algo_apart(run_dir, tmp_path, monkeypatch):
     drawn = {}
     real = plot.curves

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 from brax.envs.base import Env, State
 from flax import struct
 
-from ccp_jax.collect import _where_done, auto_reset, episode_metrics, policy_mean_and_log_std
+from ccp_jax.collect import where_done, auto_reset, episode_metrics, policy_mean_and_log_std
 from ccp_jax.config import Config
 from ccp_jax.networks import deterministic_action
 from ccp_jax.tp.networks import Proximity, RunningNorm, TransitionPolicy, Value, normalise
@@ -221,7 +221,7 @@ def make_evaluate(config: Config, env: Env, nets: TPNets) -> Callable:
             nxt = v_step(state, d.action)
             mode = next_mode(d, steps, nxt.info["stage"] > state.info["stage"], nxt.done > 0)
             live = 1.0 - state.done
-            return (_where_done(state.done, state, nxt), mode, ret + live * nxt.reward, length + live,
+            return (where_done(state.done, state, nxt), mode, ret + live * nxt.reward, length + live,
                     moved + live * d.moving, t + 1)
 
         carry = (state, mode, zeros, zeros, zeros, jnp.int32(0))
@@ -263,7 +263,7 @@ def make_initial_successes(config: Config, env: Env, primitives: Primitives) -> 
             trace = obs.at[t].set(state.obs), stages.at[t].set(stage), lives.at[t].set(live)
             mean, _ = policy_mean_and_log_std(primitives.actor, primitives.params, state.obs, stage)
             nxt = v_step(state, deterministic_action(mean))
-            return _where_done(state.done, state, nxt), trace, t + 1
+            return where_done(state.done, state, nxt), trace, t + 1
 
         state = v_reset(jax.random.split(key, episodes))
         final, trace, _ = jax.lax.while_loop(cond, body, (state, trace, jnp.int32(0)))
