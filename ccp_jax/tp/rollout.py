@@ -24,7 +24,7 @@ import jax.numpy as jnp
 from brax.envs.base import Env, State
 from flax import struct
 
-from ccp_jax.collect import where_done, auto_reset, episode_metrics, policy_mean_and_log_std
+from ccp_jax.collect import auto_reset, episode_metrics, policy_mean_and_log_std, where_done
 from ccp_jax.config import Config
 from ccp_jax.networks import deterministic_action
 from ccp_jax.tp.networks import Proximity, RunningNorm, TransitionPolicy, Value, normalise
