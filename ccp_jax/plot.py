@@ -128,14 +128,16 @@ def curves(groups: dict[Group, list[Series]], metric: str = "success_rate",
     if ax is None:
         ax = new_figure().add_subplot()
     show_task = len({g[0] for g in groups}) > 1
+    fraction = metric == "success_rate" or metric.startswith("stage_fraction")  # fractions of episodes
     for group in sorted(groups, key=_group_order):
         steps, mean, std, count = mean_std(groups[group])
         line, = ax.plot(steps, mean, label=f"{group_label(group, show_task)} (n={count.max(initial=0)})")
-        ax.fill_between(steps, mean - std, mean + std, color=line.get_color(), alpha=0.2, linewidth=0)
+        low, high = (np.clip(mean - std, 0, 1), np.clip(mean + std, 0, 1)) if fraction else (mean - std, mean + std)
+        ax.fill_between(steps, low, high, color=line.get_color(), alpha=0.2, linewidth=0)
     ax.set_xlabel("environment steps")
     ax.xaxis.set_major_formatter(FuncFormatter(_steps_label))
     ax.set_ylabel(_metric_label(metric))
-    if metric == "success_rate" or metric.startswith("stage_fraction"):  # fractions of episodes
+    if fraction:
         ax.set_ylim(-0.02, 1.02)
     ax.grid(alpha=0.3)
     ax.legend(fontsize="small")

@@ -62,6 +62,11 @@ def test_stage_fraction_plot_is_labelled_by_stage_and_spans_fractions(run_dir):
     ax = plot.curves(groups, "stage_fraction/1").axes[0]
     assert ax.get_ylabel() == "fraction reaching stage 2"
     assert ax.get_ylim() == (-0.02, 1.02)
+    steps = np.array([10, 20])  # three seeds, mean ± std = 0.67 ± 0.47 at both steps: the band is clipped to [0, 1]
+    seeds = {("peg", "naive", (1.0, 1.0)): [(steps, np.ones(2)), (steps, np.ones(2)), (steps, np.zeros(2))]}
+    band, = plot.curves(seeds, "stage_fraction/1").axes[0].collections
+    np.testing.assert_allclose([band.get_paths()[0].vertices[:, 1].min(), band.get_paths()[0].vertices[:, 1].max()],
+                               [2 / 3 - np.sqrt(2) / 3, 1.0])
     assert plot.curves(groups, "q_loss/1").axes[0].get_ylabel() == "q loss/1"
 
 
