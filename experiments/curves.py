@@ -67,7 +67,8 @@ def main(args: Args) -> list[Path]:
     for domain, groups in drawn.items():
         path = out / f"curves_{domain}.png"
         plot.curves(groups, title=TITLES[domain]).savefig(path)
-        stage2, stage2_path = domain_groups(out, domain, args.algos, args.with_auto, STAGE2), out / f"stage2_{domain}.png"
+        stage2 = domain_groups(out, domain, args.algos, args.with_auto, STAGE2)
+        stage2_path = out / f"stage2_{domain}.png"
         plot.curves(stage2, STAGE2, title=f"{TITLES[domain]}: episodes reaching stage 2").savefig(stage2_path)
         written += [path, stage2_path]
     if drawn:
