@@ -182,6 +182,25 @@ def test_eta_auto_trains_the_sweep_only_if_asked(tmp_path, monkeypatch, sweep):
     assert calls == [("sweep", "maze2")] * sweep + [("floor", "csac_auto_floor")]
 
 
+def test_fresh_seeds_train_the_best_ratio_and_auto_on_new_seeds_and_add_their_rows(maze2_runs, monkeypatch):
+    """The ratio picked on seeds 0–1 (0.1) and auto, again on seeds 2–4; their rows come after the others."""
+    import eta_auto
+
+    calls = []
+    monkeypatch.setattr(eta_auto, "run_grid", lambda config, out: calls.append((config, out)))
+    eta_auto.main(eta_auto.Args(scale="smoke", domains=("maze2",), normalisers=(), out=maze2_runs, sweep=False,
+                                fresh_seeds=3))
+    [(config, out)] = calls
+    assert out == maze2_runs / "maze2" / "csac_fresh_seeds"
+    assert config.etas == ((0.1,), ("auto",)) and config.seeds == (2, 3, 4)
+    _fake_run(out, config, {0: [1, 1], 1: [0, 0], 2: [0, 1], 3: [0, 0], 4: [0, 0], 5: [1, 1]})
+    rows = eta_auto.domain_rows(maze2_runs, "maze2")
+    assert rows[-2:] == ["| maze2 | best swept η = 0.1, fresh seeds 2–4 | 0.50 ± 0.41 | 1.00 0.00 0.50 | 300 (2/3 seeds) |",
+                         "| maze2 | auto, batch normaliser, fresh seeds 2–4 | 0.33 ± 0.47 | 0.00 0.00 1.00 | 200 (1/3 seeds) |"]
+    with pytest.raises(SystemExit, match="^error: fresh_seeds: must be >= 0"):
+        eta_auto.main(eta_auto.Args(scale="smoke", domains=("maze2",), out=maze2_runs, fresh_seeds=-1))
+
+
 def test_tp_primitives_are_the_naive_member_that_got_furthest():
     members = [dict(member=0, final_success=0.0, final_return=900.0),
                dict(member=1, final_success=0.3, final_return=500.0),
