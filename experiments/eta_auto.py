@@ -27,8 +27,8 @@ import numpy as np
 import tyro
 
 from ccp_jax.config import AUTO
-from common import (DOMAINS, SCALES, Scale, ScaleName, best_swept_eta, eta_label, final_success, mean_std, merged_summary,
-                    read_json, results_folder, run_grid, swept_runs, write_text)
+from common import (DOMAINS, SCALES, Scale, ScaleName, best_swept_eta, eta_label, final_success, mean_std,
+                    merged_summary, read_json, results_folder, run_grid, swept_runs, write_text)
 from table1 import run_dir, train_domain
 
 NORMALISERS = ("ema", "floor")
@@ -118,9 +118,9 @@ def main(args: Args) -> str:
     lines = ["| domain | CSAC variant | final success | per seed | env steps to first success |", "|---|---|---|---|---|"]
     for domain in DOMAINS:  # every domain trained in `out`, not only this call's: earlier rows are kept
         lines += domain_rows(out, domain)
-    text = ("\n".join(lines) + f"\n\nScale `{args.scale}` (see experiments/README.md); the same seeds in every row but the fresh-seed ones. "
-            "Final success: mean of the last 10 epochs' evaluation; first success: mean over the seeds that ever "
-            "succeeded.\n")
+    text = ("\n".join(lines) + f"\n\nScale `{args.scale}` (see experiments/README.md); the same seeds in every row "
+            "but the fresh-seed ones. Final success: mean of the last 10 epochs' evaluation; first success: mean over "
+            "the seeds that ever succeeded.\n")
     write_text(out / "eta_auto.md", text)
     print(text)
     return text
