@@ -79,12 +79,13 @@ def domain_rows(out: Path, domain: str) -> list[str]:
     swept = merged_summary(swept_runs(out, domain))
     if swept is None:
         return []
+    name = lambda eta: "auto, batch normaliser" if AUTO in eta else f"best swept η = {eta_label(eta[0])}"
     success, first = final_success(swept), firsts(swept)
     rows = []
     if best := best_swept_eta(swept):
-        rows.append((f"best swept η = {eta_label(best[0])}", success[best], first[best]))
+        rows.append((name(best), success[best], first[best]))
     if auto := next((eta for eta in success if AUTO in eta), None):
-        rows.append(("auto, batch normaliser", success[auto], first[auto]))
+        rows.append((name(auto), success[auto], first[auto]))
     for normaliser in NORMALISERS:
         path = run_dir(out, domain, f"csac_auto_{normaliser}") / "summary.json"
         if path.exists():
@@ -94,9 +95,9 @@ def domain_rows(out: Path, domain: str) -> list[str]:
     if path.exists():
         s = read_json(path)
         seeds = sorted({m["seed"] for m in s["members"]})
+        fresh_first = firsts(s)
         for eta, values in final_success(s).items():
-            name = "auto, batch normaliser" if AUTO in eta else f"best swept η = {eta_label(eta[0])}"
-            rows.append((f"{name}, fresh seeds {seeds[0]}–{seeds[-1]}", values, firsts(s)[eta]))
+            rows.append((f"{name(eta)}, fresh seeds {seeds[0]}–{seeds[-1]}", values, fresh_first[eta]))
     return [f"| {domain} | {name} | {mean_std(values)} | {' '.join(f'{v:.2f}' for v in values)} | {first_text(f)} |"
             for name, values, f in rows]
 
