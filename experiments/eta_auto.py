@@ -64,13 +64,19 @@ def first_text(values: list) -> str:
 FRESH = "csac_fresh_seeds"
 
 
-def train_fresh(scale: Scale, out: Path, domain: str, seeds: int) -> None:
-    """The best swept ratio and `auto` on `seeds` seeds numbered after the scale's, one grid."""
+def fresh_pick(out: Path, domain: str) -> tuple:
+    """The best finished swept ratio of `domain`, which `--fresh-seeds` trains again; exits naming the field if none."""
     swept = merged_summary(swept_runs(out, domain))
     best = swept and best_swept_eta(swept)
     if not best:
         raise SystemExit(f"error: fresh_seeds: {domain} has no finished swept ratio to pick the best from")
-    run_grid(scale.config(domain, "csac", etas=[best[:1], (AUTO,)], seeds=seeds, first_seed=scale.seeds),
+    return best
+
+
+def train_fresh(scale: Scale, out: Path, domain: str, seeds: int) -> None:
+    """The best swept ratio and `auto` on `seeds` seeds numbered after the scale's, one grid."""
+    run_grid(scale.config(domain, "csac", etas=[fresh_pick(out, domain)[:1], (AUTO,)], seeds=seeds,
+                          first_seed=scale.seeds),
              run_dir(out, domain, FRESH))
 
 
@@ -107,6 +113,9 @@ def main(args: Args) -> str:
     if args.fresh_seeds < 0:
         raise SystemExit(f"error: fresh_seeds: must be >= 0, got {args.fresh_seeds}")
     scale = SCALES[args.scale]
+    if args.fresh_seeds and not args.sweep and not args.table_only:
+        for domain in args.domains:  # before any grid trains: no sweep will run to supply the pick
+            fresh_pick(out, domain)
     if not args.table_only:
         for domain in args.domains:
             if args.sweep:

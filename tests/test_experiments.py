@@ -201,6 +201,17 @@ def test_fresh_seeds_train_the_best_ratio_and_auto_on_new_seeds_and_add_their_ro
         eta_auto.main(eta_auto.Args(scale="smoke", domains=("maze2",), out=maze2_runs, fresh_seeds=-1))
 
 
+def test_fresh_seeds_without_a_sweep_to_pick_from_fail_before_any_grid_trains(maze2_runs, monkeypatch):
+    import eta_auto
+
+    calls = []
+    monkeypatch.setattr(eta_auto, "run_grid", lambda config, out: calls.append(out))
+    with pytest.raises(SystemExit, match="^error: fresh_seeds: maze3 has no finished swept ratio"):
+        eta_auto.main(eta_auto.Args(scale="smoke", domains=("maze2", "maze3"), normalisers=("floor",),
+                                    out=maze2_runs, sweep=False, fresh_seeds=2))
+    assert calls == []  # not even maze2's floor grid, which comes first
+
+
 def test_tp_primitives_are_the_naive_member_that_got_furthest():
     members = [dict(member=0, final_success=0.0, final_return=900.0),
                dict(member=1, final_success=0.3, final_return=500.0),
