@@ -61,12 +61,14 @@ class Scale:
 
     def config(self, domain: str, algo: str, etas: Sequence[Sequence[float | str]] = ((0.1,),),
                seeds: Optional[int] = None, first_seed: int = 0, **changes) -> Config:
-        """The grid config of one (domain, algo) call at this scale: seeds first_seed, first_seed + 1, ..."""
+        """The grid config of one (domain, algo) call at this scale: seeds first_seed, first_seed + 1, ...
+
+        `changes` override any field, the scale's budget (`total_steps`) included."""
         env, rooms = DOMAINS[domain]
         seeds = tuple(range(first_seed, first_seed + (seeds or self.seeds)))
         return make_config(self.preset, env=env, rooms=rooms, algo=algo, etas=tuple(tuple(e) for e in etas),
-                           seeds=seeds, total_steps=self.total_steps[domain],
-                           **{**self.overrides, **DOMAIN_OVERRIDES.get(domain, {}), **changes})
+                           seeds=seeds, **{"total_steps": self.total_steps[domain], **self.overrides,
+                                           **DOMAIN_OVERRIDES.get(domain, {}), **changes})
 
 
 SCALES = {

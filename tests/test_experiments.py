@@ -1,4 +1,5 @@
 """The experiment scripts' bookkeeping on hand-made run folders: tables, best ratio, resume rules, figures."""
+import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -11,6 +12,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
 import common  # noqa: E402
 import curves  # noqa: E402
 import independent_ratios  # noqa: E402
+import long_budget  # noqa: E402
 import table1  # noqa: E402
 from ccp_jax.config import ConfigError  # noqa: E402
 
@@ -265,3 +267,25 @@ def test_paper_projection_builds_table1s_grids_and_sums_the_sweeps():
     assert "3.00 h" in text  # the sweeps (csac grid + sac) only; the single run is a probe, not part of Table I
     with pytest.raises(SystemExit, match="domains"):
         pp.main(pp.Args(scale="paper", domains=("maze9",)))
+
+
+def test_long_budget_trains_its_grids_then_tables_success_at_milestones_and_per_seed(tmp_path, monkeypatch):
+    calls = []
+    monkeypatch.setattr(long_budget, "run_grid", lambda config, out: calls.append((config, out)))
+    args = long_budget.Args(scale="smoke", seeds=2, total_steps=600, milestones=(200, 400, 600, 150_000), out=tmp_path)
+    with pytest.raises(SystemExit, match="^error: out: no runs in"):
+        long_budget.main(args)
+    (batch, batch_dir), (floor, floor_dir) = calls
+    assert (batch_dir.name, batch.etas, batch.normaliser) == ("csac_batch", ((0.1,), ("auto",)), "batch")
+    assert (floor_dir.name, floor.etas, floor.normaliser) == ("csac_auto_floor", (("auto",),), "floor")
+    assert batch.seeds == floor.seeds == (0, 1) and batch.total_steps == floor.total_steps == 600
+    _fake_run(batch_dir, batch, {0: [0, 1, 1], 1: [0, 0, 0], 2: [1, 1, 1], 3: [0, 1, 1]})
+    _fake_run(floor_dir, floor, {0: [0, 0, 1], 1: [1, 1, 1]})
+    lines = long_budget.main(dataclasses.replace(args, plot_only=True)).splitlines()
+    assert "| 200 | – | 0.00 (2) | 0.50 (2) | 0.50 (2) |" in lines
+    assert "| 600 | – | 0.50 (2) | 1.00 (2) | 1.00 (2) |" in lines
+    assert "| 150,000 | 0.33 | – | – | – |" in lines  # the prototype's value; no run got there
+    # a success ends in room 2 and a failure in the pocket (see _fake_run)
+    assert "| CSAC η = 0.1 | 0.33 ± 0.33 | 0.67 0.00 | 400 never | 0.67 (0.33) 0.00 (1.00) |" in lines
+    assert "| auto, floor normaliser | 0.67 ± 0.33 | 0.33 1.00 | 600 200 | 0.33 (0.67) 1.00 (0.00) |" in lines
+    assert (tmp_path / "success.png").stat().st_size > 0 and (tmp_path / "table.md").read_text().splitlines() == lines
