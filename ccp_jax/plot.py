@@ -21,6 +21,8 @@ from matplotlib.ticker import FuncFormatter
 
 from ccp_jax import outputs
 
+# Config fields that say which members a run holds and how long it trains, not what it trains.
+GRID_FIELDS = frozenset({"etas", "seeds", "grid_size", "total_steps", "num_epochs"})
 Group = tuple[str, str, tuple[float | str, ...]]  # (task, algo, eta vector; "auto" for a running η*)
 Series = tuple[np.ndarray, np.ndarray]  # (env_steps int64[E], values float64[E]) of one member
 
@@ -54,12 +56,15 @@ def load_curves(run_dirs: Sequence[str | Path], metric: str = "success_rate") ->
 
     Members of the same group from several run folders are pooled (e.g. seeds trained in
     separate runs); a (group, seed) found in several runs counts once, from the first run
-    listed. Rows where the metric is undefined are dropped.
+    listed. Runs whose settings differ beyond the grid and budget (e.g. `--normaliser`) are
+    different experiments: a (group, seed) in two of them raises ValueError (draw them
+    apart with `main`'s --labels). Rows where the metric is undefined are dropped.
     """
     groups: dict[Group, list[Series]] = defaultdict(list)
-    seen: set[tuple[Group, int]] = set()
+    seen: dict[tuple[Group, int], tuple[Path, dict]] = {}
     for run_dir in map(Path, run_dirs):
         config = json.loads((run_dir / "config.json").read_text())
+        settings = {k: v for k, v in config.items() if k not in GRID_FIELDS}
         members: dict[int, list[dict]] = defaultdict(list)
         for row in outputs.read_rows(run_dir / "metrics.jsonl"):
             members[row["member"]].append(row)
@@ -68,10 +73,15 @@ def load_curves(run_dirs: Sequence[str | Path], metric: str = "success_rate") ->
             points = [(r["env_steps"], v) for r in rows if (v := _value(r, metric)) is not None]
             steps = np.asarray([s for s, _ in points], np.int64)
             values = np.asarray([v for _, v in points], np.float64)
-            group = (_task(config), rows[0]["algo"], tuple(rows[0]["eta"]))
-            if (group, rows[0]["seed"]) not in seen:
-                seen.add((group, rows[0]["seed"]))
-                groups[group].append((steps, values))
+            group, seed = (_task(config), rows[0]["algo"], tuple(rows[0]["eta"])), rows[0]["seed"]
+            if (group, seed) in seen:
+                first_dir, first = seen[group, seed]
+                if differ := sorted(k for k in settings.keys() | first.keys() if settings.get(k) != first.get(k)):
+                    raise ValueError(f"{first_dir} and {run_dir} both hold {group_label(group)} seed {seed} but differ "
+                                     f"in {', '.join(differ)}; give each run its own label (--labels)")
+                continue
+            seen[group, seed] = run_dir, settings
+            groups[group].append((steps, values))
     return dict(groups)
 
 
@@ -227,7 +237,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Path:
                       for (task, _, eta), series in load_curves([run_dir], args.metric).items()}
         else:
             groups = load_curves(args.run_dirs, args.metric)
-    except (FileNotFoundError, KeyError) as err:
+    except (FileNotFoundError, KeyError, ValueError) as err:
         parser.exit(2, f"error: {err}\n")
     curves(groups, args.metric, title=args.title).savefig(out)
     print(f"wrote {out}")

@@ -92,6 +92,22 @@ def test_load_curves_groups_members_by_algo_and_eta(run_dir, config):
         assert v.shape == steps.shape
 
 
+def test_load_curves_refuses_to_pool_a_seed_of_two_different_experiments(run_dir, tmp_path, capsys):
+    import shutil
+
+    other = tmp_path / "floor"
+    shutil.copytree(run_dir, other)
+    config = json.loads((other / "config.json").read_text())
+    (other / "config.json").write_text(json.dumps({**config, "total_steps": 10 * config["total_steps"]}))
+    assert len(plot.load_curves([run_dir, other])[("maze-2", "csac", (0.1, 1.0))]) == config["grid_size"]  # resumed longer
+    (other / "config.json").write_text(json.dumps({**config, "normaliser": "floor"}))
+    with pytest.raises(ValueError, match="both hold csac η=0.1 seed 0 but differ in normaliser; give each run"):
+        plot.load_curves([run_dir, other])
+    with pytest.raises(SystemExit):
+        plot.main([str(run_dir), str(other)])
+    assert "differ in normaliser" in capsys.readouterr().err
+
+
 def test_mean_std_over_members_of_different_lengths():
     steps, mean, std, count = plot.mean_std([(np.array([10, 20]), np.array([0.0, 1.0])),
                                              (np.array([10, 20, 30]), np.array([1.0, 0.0, 0.5]))])
