@@ -20,6 +20,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter
 
 from ccp_jax import outputs
+from ccp_jax.config import Config
 
 # Config fields that say which members a run holds and how long it trains, not what it trains.
 GRID_FIELDS = frozenset({"etas", "seeds", "grid_size", "total_steps", "num_epochs"})
@@ -64,7 +65,8 @@ def load_curves(run_dirs: Sequence[str | Path], metric: str = "success_rate") ->
     seen: dict[tuple[Group, int], tuple[Path, dict]] = {}
     for run_dir in map(Path, run_dirs):
         config = json.loads((run_dir / "config.json").read_text())
-        settings = {k: v for k, v in config.items() if k not in GRID_FIELDS}
+        # Through Config, so a field missing from an older run's file compares as its default.
+        settings = {k: v for k, v in Config.from_dict(config).to_dict().items() if k not in GRID_FIELDS}
         members: dict[int, list[dict]] = defaultdict(list)
         for row in outputs.read_rows(run_dir / "metrics.jsonl"):
             members[row["member"]].append(row)

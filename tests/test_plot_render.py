@@ -100,6 +100,9 @@ def test_load_curves_refuses_to_pool_a_seed_of_two_different_experiments(run_dir
     config = json.loads((other / "config.json").read_text())
     (other / "config.json").write_text(json.dumps({**config, "total_steps": 10 * config["total_steps"]}))
     assert len(plot.load_curves([run_dir, other])[("maze-2", "csac", (0.1, 1.0))]) == config["grid_size"]  # resumed longer
+    older = {k: v for k, v in config.items() if k != "normaliser"}  # a run from before the field existed
+    (other / "config.json").write_text(json.dumps(older))
+    assert len(plot.load_curves([run_dir, other])[("maze-2", "csac", (0.1, 1.0))]) == config["grid_size"]
     (other / "config.json").write_text(json.dumps({**config, "normaliser": "floor"}))
     with pytest.raises(ValueError, match="both hold csac η=0.1 seed 0 but differ in normaliser; give each run"):
         plot.load_curves([run_dir, other])
