@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import math
 from typing import Literal, Sequence
 
 import numpy as np
@@ -76,6 +77,8 @@ class Config:
     actor_lr: float = 3e-4
     critic_lr: float = 3e-4
     alpha_lr: float = 3e-4
+    # The entropy each α steers its policy towards; None: −|A| (RLkit's, the paper's).
+    target_entropy: float | None = None
     # CCP.
     absorbing_success: bool = True
     # Past its stage a subtask's reward is 1 forever, so its critic bootstraps the exact
@@ -247,6 +250,8 @@ class Config:
             raise ConfigError("norm_floor", f"must be positive, got {self.norm_floor}")
         if self.algo == "tp":
             self._validate_tp()
+        if self.target_entropy is not None and not math.isfinite(self.target_entropy):
+            raise ConfigError("target_entropy", f"must be a finite number (or None for −|A|), got {self.target_entropy}")
         lo, hi = self.eta_auto_range
         if not 0.0 <= lo <= hi <= 1.0:
             raise ConfigError("eta_auto_range", f"must satisfy 0 <= low <= high <= 1, got {self.eta_auto_range}")

@@ -124,7 +124,7 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
     agent_ids = jnp.arange(n_agents)
     # Channel reward once its subtask is done: 1 per subtask, N for the summed SAC reward.
     absorbing = (config.num_stages if config.algo == "sac" else 1.0) / (1.0 - config.gamma)
-    target_entropy = -float(action_size)
+    target_entropy = -float(action_size) if config.target_entropy is None else config.target_entropy
     own_ids = jnp.zeros_like(agent_ids) if n_agents == 1 else agent_ids
     actor_apply = jax.vmap(nets.actor.apply)
     sample = jax.vmap(functools.partial(sample_action, tanh_log_prob=config.tanh_log_prob))

@@ -23,6 +23,7 @@ from ccp_jax.train import Args, config_from_args
     (dict(hidden=(64, 0)), "hidden"),
     (dict(seeds=(1, 1)), "seeds"),
     (dict(tanh_log_prob="torch"), "tanh_log_prob"),
+    (dict(target_entropy=float("nan")), "target_entropy"),
     (dict(no_such_field=1), "no_such_field"),
 ])
 def test_bad_config_names_the_field(overrides, field):
@@ -57,6 +58,7 @@ def test_eta_vectors_and_grid_order():
 def test_cli_arguments_resolve():
     c = config_from_args(Args(rooms=3, eta_per_agent=("0.1,1.0", "0.5,0.5"), seeds=2, preset="tiny"))
     assert c.etas == ((0.1, 1.0), (0.5, 0.5)) and c.seeds == (0, 1) and c.grid_size == 4
+    assert config_from_args(Args(target_entropy=-0.5, preset="tiny")).target_entropy == -0.5
     with pytest.raises(ConfigError, match="^eta_per_agent:"):
         config_from_args(Args(rooms=3, eta_per_agent=("0.1;1.0",), preset="tiny"))
     with pytest.raises(ConfigError, match="^eta_per_agent:"):

@@ -181,3 +181,18 @@ def test_tanh_log_prob_forms_against_hand_values():
     _, exact = sample_action(jnp.full((1, 1), 10.0), log_std, key, "exact")
     assert float(rlkit[0]) == pytest.approx(-gauss - np.log(1e-6), abs=1e-3)  # tanh(10) == 1 in float32
     assert float(exact[0]) == pytest.approx(-gauss - 2 * (np.log(2) - 10.0), abs=1e-3)
+
+
+def test_target_entropy_sets_which_way_alpha_moves(csac):
+    """α's gradient is −mean(log π + target): above an entropy target that is out of reach α rises, below −|A| it falls."""
+    config, nets, agents, batch, _ = csac
+    eta, ready, key = jnp.array([0.3, 1.0]), jnp.array([True, True]), jax.random.PRNGKey(3)
+    moved = {}
+    for target in (None, -50.0, 50.0):
+        update = jax.jit(make_learner(config.replace(target_entropy=target), nets, ACT).update)
+        new, metrics = update(agents, batch, eta, ready, key)
+        moved[target] = np.sign(np.asarray(new.log_alpha - agents.log_alpha))
+        entropy = -np.asarray(metrics.log_prob)
+    assert np.all(moved[-50.0] == -1) and np.all(moved[50.0] == 1)
+    # The default is −|A| = −2: α falls for agents whose batch entropy is above it.
+    np.testing.assert_array_equal(moved[None], np.where(entropy > -ACT, -1, 1))
