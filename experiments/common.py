@@ -65,7 +65,7 @@ class Scale:
 
         `changes` override any field, the scale's budget (`total_steps`) included."""
         env, rooms = DOMAINS[domain]
-        seeds = tuple(range(first_seed, first_seed + (seeds or self.seeds)))
+        seeds = tuple(range(first_seed, first_seed + (self.seeds if seeds is None else seeds)))
         return make_config(self.preset, env=env, rooms=rooms, algo=algo, etas=tuple(tuple(e) for e in etas),
                            seeds=seeds, **{"total_steps": self.total_steps[domain], **self.overrides,
                                            **DOMAIN_OVERRIDES.get(domain, {}), **changes})

@@ -275,6 +275,8 @@ def test_long_budget_trains_its_grids_then_tables_success_at_milestones_and_per_
     args = long_budget.Args(scale="smoke", seeds=2, total_steps=600, milestones=(200, 400, 600, 150_000), out=tmp_path)
     with pytest.raises(SystemExit, match="^error: out: no runs in"):
         long_budget.main(args)
+    with pytest.raises(ConfigError, match="^seeds: at least one"):  # not the scale's 2 seeds in its place
+        long_budget.main(dataclasses.replace(args, seeds=0))
     (batch, batch_dir), (floor, floor_dir) = calls
     assert (batch_dir.name, batch.etas, batch.normaliser) == ("csac_batch", ((0.1,), ("auto",)), "batch")
     assert (floor_dir.name, floor.etas, floor.normaliser) == ("csac_auto_floor", (("auto",),), "floor")
