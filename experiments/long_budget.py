@@ -7,10 +7,11 @@ SPEC §7's yardstick settings (the `cpu` scale: [64, 64] nets, the paper's epoch
 buffers of 2e5), seeds 0–5, 750 k env steps (a quarter of the paper's 3 M; the
 `cpu` scale's Table I gives the 2-room maze 150 k): CSAC with η = 0.1 (the
 paper's best 2-room ratio and SPEC §7's) and `auto`, both with the paper's batch
-normaliser (one grid, csac_batch/), and `auto` with the floor normaliser
-(csac_auto_floor/). Writes into the results folder: table.md (mean success at
-SPEC §7's milestones beside its prototype's, then per seed the final success,
-the first success and where the last evaluations end) and success.png.
+normaliser (one grid, csac_batch/), `auto` with the floor normaliser
+(csac_auto_floor/), and η = 0.5, the `cpu` sweep's best ratio (csac_eta_0.5/).
+Writes into the results folder: table.md (mean success at SPEC §7's milestones
+beside its prototype's, then per seed the final success, the first success and
+where the last evaluations end) and success.png.
 """
 from __future__ import annotations
 
@@ -24,9 +25,11 @@ from ccp_jax import plot
 from ccp_jax.config import AUTO
 from common import SCALES, ScaleName, final_ends, fmt, mean_std, read_json, run_grid, write_text
 
-# Run folder -> (ratio grid, config changes). Both folders hold seeds 0..seeds-1.
+# Run folder -> (ratio grid, config changes); each holds seeds 0..seeds-1. η = 0.5 is the `cpu` scale's best
+# swept 2-room ratio (Table I at 150 k), η = 0.1 the paper's.
 RUNS = {"csac_batch": (((0.1,), (AUTO,)), {}),
-        "csac_auto_floor": (((AUTO,),), {"normaliser": "floor"})}
+        "csac_auto_floor": (((AUTO,),), {"normaliser": "floor"}),
+        "csac_eta_0.5": (((0.5,),), {})}
 # SPEC §7: the prototype's mean success (CSAC η = 0.1, 3 seeds) at these env steps; 0.93–1.00 from 250 k to 515 k.
 PROTOTYPE = {100_000: 0.03, 150_000: 0.33, 200_000: 0.77}
 PROTOTYPE_PLATEAU = (250_000, 515_000, 0.93, 1.00)
@@ -70,7 +73,7 @@ def load(out: Path) -> dict[str, dict]:
             members = summary and [m for m in summary["members"] if tuple(m["eta"]) == eta]
             found[variant(eta, changes)] = dict(curves=series, members=members,
                                                ends=members and [ends[m["member"]] for m in members])
-    return found
+    return dict(sorted(found.items(), key=lambda item: item[0].startswith("auto")))  # numeric ratios first
 
 
 def milestone_table(found: dict[str, dict], milestones: tuple[int, ...]) -> list[str]:

@@ -277,16 +277,19 @@ def test_long_budget_trains_its_grids_then_tables_success_at_milestones_and_per_
         long_budget.main(args)
     with pytest.raises(ConfigError, match="^seeds: at least one"):  # not the scale's 2 seeds in its place
         long_budget.main(dataclasses.replace(args, seeds=0))
-    (batch, batch_dir), (floor, floor_dir) = calls
+    (batch, batch_dir), (floor, floor_dir), (half, half_dir) = calls
     assert (batch_dir.name, batch.etas, batch.normaliser) == ("csac_batch", ((0.1,), ("auto",)), "batch")
     assert (floor_dir.name, floor.etas, floor.normaliser) == ("csac_auto_floor", (("auto",),), "floor")
-    assert batch.seeds == floor.seeds == (0, 1) and batch.total_steps == floor.total_steps == 600
+    assert (half_dir.name, half.etas, half.normaliser) == ("csac_eta_0.5", ((0.5,),), "batch")
+    assert batch.seeds == floor.seeds == half.seeds == (0, 1) and {c.total_steps for c, _ in calls} == {600}
     _fake_run(batch_dir, batch, {0: [0, 1, 1], 1: [0, 0, 0], 2: [1, 1, 1], 3: [0, 1, 1]})
     _fake_run(floor_dir, floor, {0: [0, 0, 1], 1: [1, 1, 1]})
+    _fake_run(half_dir, half, {0: [1, 1, 1], 1: [1, 1, 1]})
     lines = long_budget.main(dataclasses.replace(args, plot_only=True)).splitlines()
-    assert "| 200 | – | 0.00 (2) | 0.50 (2) | 0.50 (2) |" in lines
-    assert "| 600 | – | 0.50 (2) | 1.00 (2) | 1.00 (2) |" in lines
-    assert "| 150,000 | 0.33 | – | – | – |" in lines  # the prototype's value; no run got there
+    # columns: η = 0.1, η = 0.5, then auto (batch), auto (floor)
+    assert "| 200 | – | 0.00 (2) | 1.00 (2) | 0.50 (2) | 0.50 (2) |" in lines
+    assert "| 600 | – | 0.50 (2) | 1.00 (2) | 1.00 (2) | 1.00 (2) |" in lines
+    assert "| 150,000 | 0.33 | – | – | – | – |" in lines  # the prototype's value; no run got there
     # a success ends in room 2 and a failure in the pocket (see _fake_run)
     assert "| CSAC η = 0.1 | 0.33 ± 0.33 | 0.67 0.00 | 400 never | 0.67 (0.33) 0.00 (1.00) |" in lines
     assert "| auto, floor normaliser | 0.67 ± 0.33 | 0.33 1.00 | 600 200 | 0.33 (0.67) 1.00 (0.00) |" in lines
