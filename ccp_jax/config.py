@@ -191,6 +191,11 @@ class Config:
     def replace(self, **changes) -> "Config":
         return dataclasses.replace(self, **changes)
 
+    def differing(self, other: "Config", ignore: Sequence[str] = ()) -> list[str]:
+        """Names of the fields (in declaration order) whose values differ from `other`'s, except `ignore`."""
+        return [f.name for f in dataclasses.fields(self)
+                if f.name not in ignore and getattr(self, f.name) != getattr(other, f.name)]
+
     # --------------------------------------------------------------- validation
     def _validate(self) -> None:
         from ccp_jax.envs import ENV_NAMES  # local: config must not import jax eagerly

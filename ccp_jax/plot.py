@@ -23,7 +23,7 @@ from ccp_jax import outputs
 from ccp_jax.config import Config
 
 # Config fields that say which members a run holds and how long it trains, not what it trains.
-GRID_FIELDS = frozenset({"etas", "seeds", "grid_size", "total_steps", "num_epochs"})
+GRID_FIELDS = ("etas", "seeds", "total_steps")
 Group = tuple[str, str, tuple[float | str, ...]]  # (task, algo, eta vector; "auto" for a running η*)
 Series = tuple[np.ndarray, np.ndarray]  # (env_steps int64[E], values float64[E]) of one member
 
@@ -62,11 +62,10 @@ def load_curves(run_dirs: Sequence[str | Path], metric: str = "success_rate") ->
     apart with `main`'s --labels). Rows where the metric is undefined are dropped.
     """
     groups: dict[Group, list[Series]] = defaultdict(list)
-    seen: dict[tuple[Group, int], tuple[Path, dict]] = {}
+    seen: dict[tuple[Group, int], tuple[Path, Config]] = {}
     for run_dir in map(Path, run_dirs):
         config = json.loads((run_dir / "config.json").read_text())
-        # Through Config, so a field missing from an older run's file compares as its default.
-        settings = {k: v for k, v in Config.from_dict(config).to_dict().items() if k not in GRID_FIELDS}
+        settings = Config.from_dict(config)  # a field an older run's file lacks compares as its default
         members: dict[int, list[dict]] = defaultdict(list)
         for row in outputs.read_rows(run_dir / "metrics.jsonl"):
             members[row["member"]].append(row)
@@ -78,7 +77,7 @@ def load_curves(run_dirs: Sequence[str | Path], metric: str = "success_rate") ->
             group, seed = (_task(config), rows[0]["algo"], tuple(rows[0]["eta"])), rows[0]["seed"]
             if (group, seed) in seen:
                 first_dir, first = seen[group, seed]
-                if differ := sorted(k for k in settings.keys() | first.keys() if settings.get(k) != first.get(k)):
+                if differ := first.differing(settings, ignore=GRID_FIELDS):
                     raise ValueError(f"{first_dir} and {run_dir} both hold {group_label(group)} seed {seed} but differ "
                                      f"in {', '.join(differ)}; give each run its own label (--labels)")
                 continue

@@ -183,11 +183,10 @@ def resume_config(args: Args) -> Config:
     if args.out is not None and args.out != run_dir:
         raise ConfigError("out", f"--out {args.out} differs from --resume {run_dir}; give only --resume")
     config = config_from_args(args, base=saved)
-    for field in dataclasses.fields(Config):
-        old, new = getattr(saved, field.name), getattr(config, field.name)
-        if field.name != "total_steps" and old != new:
-            raise ConfigError(field.name, f"the run in {run_dir} was trained with {old!r}, got {new!r}; "
-                                          "start a new run to change it")
+    if changed := saved.differing(config, ignore=("total_steps",)):
+        name = changed[0]
+        raise ConfigError(name, f"the run in {run_dir} was trained with {getattr(saved, name)!r}, got "
+                                f"{getattr(config, name)!r}; start a new run to change it")
     return config
 
 

@@ -112,10 +112,10 @@ def run_grid(config: Config, out: Path, checkpoint_every: int = 10, log=print, k
     summary_path, config_path = out / "summary.json", out / "config.json"
     if config_path.exists():
         saved = Config.from_dict(read_json(config_path))
-        for field in dataclasses.fields(Config):
-            if getattr(saved, field.name) != getattr(config, field.name):
-                raise ConfigError(field.name, f"{out} holds a run with {getattr(saved, field.name)!r}, this "
-                                              f"experiment needs {getattr(config, field.name)!r}; use another --out")
+        if changed := saved.differing(config):
+            name = changed[0]
+            raise ConfigError(name, f"{out} holds a run with {getattr(saved, name)!r}, this "
+                                    f"experiment needs {getattr(config, name)!r}; use another --out")
         if summary_path.exists():
             log(f"done already: {out}")
             return read_json(summary_path)

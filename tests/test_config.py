@@ -59,6 +59,10 @@ def test_cli_arguments_resolve():
     c = config_from_args(Args(rooms=3, eta_per_agent=("0.1,1.0", "0.5,0.5"), seeds=2, preset="tiny"))
     assert c.etas == ((0.1, 1.0), (0.5, 0.5)) and c.seeds == (0, 1) and c.grid_size == 4
     assert config_from_args(Args(target_entropy=-0.5, preset="tiny")).target_entropy == -0.5
+    base = make_config("tiny")
+    other = base.replace(total_steps=800, normaliser="floor", gamma=0.9)
+    assert base.differing(other) == ["total_steps", "gamma", "normaliser"]  # declaration order
+    assert base.differing(other, ignore=("total_steps",)) == ["gamma", "normaliser"] and base.differing(base) == []
     with pytest.raises(ConfigError, match="^eta_per_agent:"):
         config_from_args(Args(rooms=3, eta_per_agent=("0.1;1.0",), preset="tiny"))
     with pytest.raises(ConfigError, match="^eta_per_agent:"):
