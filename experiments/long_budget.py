@@ -69,7 +69,7 @@ def load(out: Path) -> dict[str, dict]:
             continue
         summary = read_json(run / "summary.json") if (run / "summary.json").exists() else None
         ends = final_ends(run) if summary else {}
-        for (_, _, eta), series in sorted(plot.load_curves([run]).items(), key=lambda g: AUTO in g[0][2]):
+        for (_, _, eta), series in plot.load_curves([run]).items():
             members = summary and [m for m in summary["members"] if tuple(m["eta"]) == eta]
             found[variant(eta, changes)] = dict(curves=series, members=members,
                                                ends=members and [ends[m["member"]] for m in members])
