@@ -64,6 +64,9 @@ class Config:
     total_steps: int = 3_000_000
     steps_per_epoch: int = 5000
     train_loops_per_epoch: int = 1000
+    # An epoch as K cycles of (collect steps/K, then loops/K updates): RLkit's
+    # num_train_loops_per_epoch. 1 is the paper's; steps_per_epoch/num_envs is CleanRL's interleaving.
+    train_cycles_per_epoch: int = 1
     num_envs: int = 1
     start_steps: int = 1000
     max_episode_steps: int = 1000
@@ -141,8 +144,8 @@ class Config:
 
     @property
     def collect_iters(self) -> int:
-        """Vectorised env steps per epoch (each steps `num_envs` envs)."""
-        return self.steps_per_epoch // self.num_envs
+        """Vectorised env steps per collection cycle (each steps `num_envs` envs)."""
+        return self.steps_per_epoch // (self.num_envs * self.train_cycles_per_epoch)
 
     @property
     def grid(self) -> list[tuple[tuple[float, ...], int]]:
@@ -206,7 +209,7 @@ class Config:
             raise ConfigError("algo", f"unknown algo {self.algo!r}; choose one of {ALGOS}")
         if not isinstance(self.rooms, int) or self.rooms < 2:
             raise ConfigError("rooms", f"must be an integer >= 2, got {self.rooms!r}")
-        for name in ("total_steps", "steps_per_epoch", "train_loops_per_epoch", "num_envs",
+        for name in ("total_steps", "steps_per_epoch", "train_loops_per_epoch", "train_cycles_per_epoch", "num_envs",
                      "max_episode_steps", "eval_episodes", "batch_size", "buffer_size"):
             value = getattr(self, name)
             if not isinstance(value, (int, np.integer)) or value <= 0:
@@ -217,6 +220,11 @@ class Config:
             raise ConfigError("hidden", f"layer sizes must be positive, got {self.hidden}")
         if self.steps_per_epoch % self.num_envs:
             raise ConfigError("num_envs", f"must divide steps_per_epoch ({self.steps_per_epoch}), got {self.num_envs}")
+        cycles = self.train_cycles_per_epoch
+        if (self.steps_per_epoch // self.num_envs) % cycles or self.train_loops_per_epoch % cycles:
+            raise ConfigError("train_cycles_per_epoch", f"must divide both the epoch's vectorised steps "
+                              f"({self.steps_per_epoch // self.num_envs} = steps_per_epoch / num_envs) and "
+                              f"train_loops_per_epoch ({self.train_loops_per_epoch}), got {cycles}")
         if self.total_steps < self.steps_per_epoch:
             raise ConfigError("total_steps", f"must be at least one epoch ({self.steps_per_epoch} steps), got {self.total_steps}")
         if self.batch_size > self.buffer_size:
@@ -267,6 +275,8 @@ class Config:
                                             "(same env and rooms), then pass that run folder as --primitives DIR")
         if len(self.etas) != 1:
             raise ConfigError("eta", "tp has no cooperative ratio; give no --eta grid")
+        if self.train_cycles_per_epoch != 1:
+            raise ConfigError("train_cycles_per_epoch", "tp collects and updates once per epoch; it must be 1")
         for name in ("tp_max_steps", "tp_ppo_epochs", "tp_minibatch", "tp_prox_updates", "tp_buffer_size",
                      "tp_init_episodes", "primitives_member"):
             value = getattr(self, name)

@@ -77,6 +77,8 @@ class Args:
     buffer_size: Optional[int] = None
     steps_per_epoch: Optional[int] = None
     train_loops_per_epoch: Optional[int] = None
+    train_cycles_per_epoch: Optional[int] = None
+    """Split each epoch into K cycles of (collect, update) (default 1, the paper's: all steps, then all updates)."""
     eval_episodes: Optional[int] = None
     max_episode_steps: Optional[int] = None
     gamma: Optional[float] = None
@@ -125,7 +127,7 @@ class Args:
 
 
 OVERRIDES = ("total_steps", "num_envs", "hidden", "batch_size", "buffer_size", "steps_per_epoch",
-             "train_loops_per_epoch", "eval_episodes", "max_episode_steps", "gamma", "absorbing_stages",
+             "train_loops_per_epoch", "train_cycles_per_epoch", "eval_episodes", "max_episode_steps", "gamma", "absorbing_stages",
              "absorbing_success", "tanh_log_prob", "normaliser", "norm_floor", "norm_ema_rate", "next_action", "tau",
              "actor_lr", "critic_lr", "alpha_lr", "target_entropy", "start_steps", "normalise_last", "eta_auto_range",
              "primitives_member", "tp_max_steps", "tp_init_episodes", "tp_prox_updates", "tp_ppo_epochs", "tp_buffer_size")

@@ -1,8 +1,9 @@
 """The trainer: `make_train(config, env)` returns pure `init` and `train_step` functions.
 
 `train_step` is one epoch of one run — collect `steps_per_epoch` env steps,
-run `train_loops_per_epoch` joint updates of all agents, evaluate — and is a
-single jittable function. `make_grid_train` maps both over the grid axis
+run `train_loops_per_epoch` joint updates of all agents (in
+`train_cycles_per_epoch` alternating rounds of collection and updates),
+evaluate — and is a single jittable function. `make_grid_train` maps both over the grid axis
 (seeds × ratios), so a whole sweep is one compiled program.
 """
 from __future__ import annotations
@@ -81,22 +82,35 @@ def make_train(config: Config, env: Env) -> Trainer:
 
     def train_step(state: TrainState, eta: jax.Array) -> tuple[TrainState, EpochMetrics]:
         key, k_collect, k_train, k_eval = jax.random.split(state.key, 4)
-        env_state, buffer, stats = collect(state.agents.actor, state.env_state, state.buffer, k_collect,
-                                           state.env_steps)
-        ready = replay.ready(buffer, config.batch_size)
-
-        def loop(agents, k):
-            k_sample, k_update = jax.random.split(k)
-            batch = replay.sample(buffer, k_sample, config.batch_size)
-            return learner.update(agents, batch, eta, ready, k_update)
-
         k_train, k_pulls = jax.random.split(k_train)
-        agents, train_metrics = jax.lax.scan(loop, state.agents,
-                                             jax.random.split(k_train, config.train_loops_per_epoch))
+        cycles = config.train_cycles_per_epoch
+        # One cycle keeps the key stream of the single-collection epoch.
+        per_cycle = (lambda k: k[None]) if cycles == 1 else (lambda k: jax.random.split(k, cycles))
+
+        def cycle(carry, keys):
+            agents, env_state, buffer, env_steps = carry
+            k_collect, k_train = keys
+            env_state, buffer, stats = collect(agents.actor, env_state, buffer, k_collect, env_steps)
+            ready = replay.ready(buffer, config.batch_size)
+
+            def loop(agents, k):
+                k_sample, k_update = jax.random.split(k)
+                batch = replay.sample(buffer, k_sample, config.batch_size)
+                return learner.update(agents, batch, eta, ready, k_update)
+
+            agents, train_metrics = jax.lax.scan(
+                loop, agents, jax.random.split(k_train, config.train_loops_per_epoch // cycles))
+            env_steps = env_steps + config.steps_per_epoch // cycles
+            return (agents, env_state, buffer, env_steps), (stats, train_metrics)
+
+        (agents, env_state, buffer, env_steps), (stats, train_metrics) = jax.lax.scan(
+            cycle, (state.agents, state.env_state, state.buffer, state.env_steps),
+            (per_cycle(k_collect), per_cycle(k_train)))
+        stats = jax.tree.map(lambda x: x.sum(0), stats)
+        train_metrics = jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), train_metrics)
         pull_own, pull_next = learner.action_pulls(agents, replay.sample(buffer, k_pulls, config.batch_size), eta,
                                                    k_pulls)
         eval_metrics = evaluate(agents.actor, k_eval)
-        env_steps = state.env_steps + config.steps_per_epoch
         metrics = EpochMetrics(env_steps=env_steps, eval=eval_metrics,
                                train=jax.tree.map(lambda x: x.mean(0), train_metrics),
                                train_episodes=stats.episodes,

@@ -152,11 +152,12 @@ def test_every_hyperparameter_reaches_the_config_from_the_cli():
 
     args = tyro.cli(Args, args=["--preset", "tiny", "--tau", "0.01", "--actor-lr", "1e-3", "--critic-lr", "2e-3",
                                 "--alpha-lr", "3e-3", "--start-steps", "50", "--normalise-last", "True",
-                                "--eta-auto-range", "0.2", "0.8", "--next-action", "acting", "--normaliser", "ema"])
+                                "--eta-auto-range", "0.2", "0.8", "--next-action", "acting", "--normaliser", "ema",
+                                "--train-cycles-per-epoch", "10"])
     config = config_from_args(args)
     assert (config.tau, config.actor_lr, config.critic_lr, config.alpha_lr) == (0.01, 1e-3, 2e-3, 3e-3)
     assert (config.start_steps, config.normalise_last, config.eta_auto_range) == (50, True, (0.2, 0.8))
-    assert (config.next_action, config.normaliser) == ("acting", "ema")
+    assert (config.next_action, config.normaliser, config.train_cycles_per_epoch) == ("acting", "ema", 10)
     with pytest.raises(ConfigError, match="^eta_auto_range:"):
         config_from_args(tyro.cli(Args, args=["--preset", "tiny", "--eta-auto-range", "0.9", "0.1"]))
 
@@ -165,3 +166,25 @@ def test_every_hyperparameter_reaches_the_config_from_the_cli():
 def test_baselines_run_through_the_cli(tmp_path, algo):
     summary = main(["--preset", "tiny", "--algo", algo, "--out", str(tmp_path / algo), "--no-progress"])
     assert summary["members"][0]["algo"] == algo and summary["members"][0]["env_steps"] == 400
+
+
+@pytest.mark.parametrize("cycles, updates", [(1, 20), (10, 18)])
+def test_train_cycles_interleave_collection_and_updates(cycles, updates):
+    """tiny: 200 steps (2 envs) and 20 loops per epoch, batch 32. In 10 cycles of 20 steps and 2 loops,
+    agent 0's buffer holds 20 transitions after cycle 1 (not ready) and 40 from cycle 2: 9 × 2 updates."""
+    import optax
+
+    config = make_config("tiny", rooms=2, seeds=(0,), start_steps=0, train_cycles_per_epoch=cycles)
+    trainer = make_grid_train(config, make_env(config))
+    state, (m,) = _train(config, trainer, 1)
+    assert m.buffer_size[0, 0] == 200 and m.env_steps[0] == 200  # every step in room 1, all collected
+    count = optax.tree_utils.tree_get(state.agents.actor_opt, "count")
+    assert count[0, 0] == updates
+    assert m.train_episodes[0] >= 2  # episode stats summed over the cycles (tiny: 100-step episodes, 2 envs)
+
+
+def test_train_cycles_must_divide_the_epoch():
+    with pytest.raises(ConfigError, match="^train_cycles_per_epoch:"):
+        make_config("tiny", train_cycles_per_epoch=3)  # 100 vectorised steps, 20 loops
+    with pytest.raises(ConfigError, match="^train_cycles_per_epoch:"):
+        make_config("tiny", train_cycles_per_epoch=0)
