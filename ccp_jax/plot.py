@@ -226,16 +226,18 @@ def main(argv: Optional[Sequence[str]] = None) -> Path:
                                                   "else RUN_DIR/<metric>.png, in the first RUN_DIR)")
     parser.add_argument("--title")
     parser.add_argument("--labels", nargs="+", metavar="LABEL",
-                        help="one name per RUN_DIR, replacing its algo in the legend (to compare variants of one algo)")
+                        help="one name per RUN_DIR, replacing its algo in the legend (to compare variants of one algo); "
+                             "folders with the same label pool their seeds")
     args = parser.parse_args(argv)
     if args.labels and len(args.labels) != len(args.run_dirs):
         parser.exit(2, f"error: labels: {len(args.labels)} given for {len(args.run_dirs)} run folders\n")
     name = "success" if args.metric == "success_rate" else args.metric.replace("/", "_agent")
     out = args.out or args.run_dirs[0] / f"{name}.png"
     try:
-        if args.labels:
-            groups = {(task, label, eta): series for run_dir, label in zip(args.run_dirs, args.labels)
-                      for (task, _, eta), series in load_curves([run_dir], args.metric).items()}
+        if args.labels:  # folders given the same label pool their seeds
+            by_label = {label: [d for d, l in zip(args.run_dirs, args.labels) if l == label] for label in args.labels}
+            groups = {(task, label, eta): series for label, dirs in by_label.items()
+                      for (task, _, eta), series in load_curves(dirs, args.metric).items()}
         else:
             groups = load_curves(args.run_dirs, args.metric)
     except (FileNotFoundError, KeyError, ValueError) as err:

@@ -81,6 +81,23 @@ def test_plot_labels_keep_runs_of_one_algo_apart(run_dir, tmp_path, monkeypatch)
         plot.main([str(run_dir), "--labels", "a", "b"])
 
 
+def test_plot_labels_pool_the_seeds_of_folders_with_one_label(run_dir, tmp_path, monkeypatch):
+    import shutil
+
+    halves = []
+    for seed in (0, 1):  # the tiny run's two seeds, one per folder
+        half = tmp_path / f"seed{seed}"
+        shutil.copytree(run_dir, half)
+        rows = [r for r in (half / "metrics.jsonl").read_text().splitlines() if json.loads(r)["seed"] == seed]
+        (half / "metrics.jsonl").write_text("\n".join(rows) + "\n")
+        halves.append(str(half))
+    drawn = {}
+    real = plot.curves
+    monkeypatch.setattr(plot, "curves", lambda groups, *a, **k: drawn.update(groups) or real(groups, *a, **k))
+    plot.main(halves + [str(run_dir), "--labels", "pooled", "pooled", "whole", "--out", str(tmp_path / "p.png")])
+    assert {g[1]: len(series) for g, series in drawn.items()} == {"pooled": 2, "whole": 2}
+
+
 def test_load_curves_groups_members_by_algo_and_eta(run_dir, config):
     groups = plot.load_curves([run_dir, run_dir])  # the same run twice: each (group, seed) counts once
     (group, series), = groups.items()
