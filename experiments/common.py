@@ -156,16 +156,28 @@ def merged_summary(folders: Sequence[Path]) -> Optional[dict]:
 
     An (eta vector, seed) found in several runs counts once, from the first folder
     listed; each member carries its run's folder (`run`) and that run's `wall_s`.
+    Runs whose settings differ beyond grid and budget are different experiments: a
+    member in two of them raises ValueError naming the fields (as `plot.load_curves`).
     """
+    from ccp_jax.config import Config
+    from ccp_jax.plot import GRID_FIELDS
+
     if not folders:
         return None
-    seen, members = set(), []
+    seen, members = {}, []
     for folder in folders:
         summary = read_json(Path(folder) / "summary.json")
+        settings = Config.from_dict(read_json(Path(folder) / "config.json"))
         for m in summary["members"]:
-            if (key := (tuple(m["eta"]), m["seed"])) not in seen:
-                seen.add(key)
-                members.append({**m, "run": str(folder), "wall_s": summary.get("wall_s")})
+            key = (tuple(m["eta"]), m["seed"])
+            if key in seen:
+                first_folder, first = seen[key]
+                if differ := first.differing(settings, ignore=GRID_FIELDS):
+                    raise ValueError(f"{first_folder} and {folder} both hold eta {list(key[0])} seed {key[1]} but "
+                                     f"differ in {', '.join(differ)}: they are different experiments")
+                continue
+            seen[key] = folder, settings
+            members.append({**m, "run": str(folder), "wall_s": summary.get("wall_s")})
     return {"members": members}
 
 

@@ -99,6 +99,20 @@ def test_subset_sweeps_join_the_table_curves_and_eta_auto_rows_once(maze2_runs):
     assert eta_auto.domain_rows(maze2_runs, "maze2")[0].startswith("| maze2 | best swept η = 0.5 | 0.83 ± 0.17 |")
 
 
+def test_merged_summary_refuses_to_pool_a_member_of_two_different_experiments(maze2_runs):
+    scale = common.SCALES["smoke"]
+    csac = maze2_runs / "maze2" / "csac"
+    floor = maze2_runs / "maze2" / "csac_floor"
+    _fake_run(floor, scale.config("maze2", "csac", etas=[(0.1,)], normaliser="floor"), {0: [1, 1, 1], 1: [1, 1, 1]})
+    with pytest.raises(ValueError, match="seed 0 but differ in normaliser"):
+        common.merged_summary([csac, floor])
+    longer = maze2_runs / "maze2" / "csac_longer"  # grid and budget may differ: the first folder's member counts
+    _fake_run(longer, scale.config("maze2", "csac", etas=[(0.1,)], total_steps=2 * scale.config("maze2", "csac").total_steps),
+              {0: [1] * 6, 1: [1] * 6})
+    members = common.merged_summary([csac, longer])["members"]
+    assert len(members) == 4 and all(m["run"] == str(csac) for m in members)
+
+
 def test_run_grid_skips_a_finished_run_and_refuses_another_config(maze2_runs):
     folder = maze2_runs / "maze2" / "csac"
     config = common.Config.from_dict(json.loads((folder / "config.json").read_text()))
