@@ -22,6 +22,8 @@ NextAction = Literal["own", "acting"]
 NEXT_ACTIONS = ("own", "acting")
 TanhLogProb = Literal["rlkit", "exact"]
 TANH_LOG_PROBS = ("rlkit", "exact")
+NetworkInit = Literal["flax", "rlkit"]
+NETWORK_INITS = ("flax", "rlkit")
 AUTO = "auto"  # a ratio estimated during training (η*), see `Config.eta_auto_range`
 
 
@@ -73,6 +75,8 @@ class Config:
     eval_episodes: int = 10
     # SAC.
     hidden: tuple[int, ...] = (256, 256)
+    # Initial weights (`networks.MLP`): flax's defaults, or RLkit's (outputs start near 0 everywhere).
+    network_init: NetworkInit = "flax"
     batch_size: int = 256
     buffer_size: int = 1_000_000
     gamma: float = 0.95
@@ -255,6 +259,8 @@ class Config:
             raise ConfigError("next_action", f"unknown rule {self.next_action!r}; choose one of {NEXT_ACTIONS}")
         if self.tanh_log_prob not in TANH_LOG_PROBS:
             raise ConfigError("tanh_log_prob", f"unknown form {self.tanh_log_prob!r}; choose one of {TANH_LOG_PROBS}")
+        if self.network_init not in NETWORK_INITS:
+            raise ConfigError("network_init", f"unknown init {self.network_init!r}; choose one of {NETWORK_INITS}")
         if self.normaliser not in NORMALISERS:
             raise ConfigError("normaliser", f"unknown normaliser {self.normaliser!r}; choose one of {NORMALISERS}")
         if not 0.0 < self.norm_ema_rate <= 1.0:

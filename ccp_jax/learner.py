@@ -59,8 +59,8 @@ class Networks(NamedTuple):
 
 def make_networks(config: Config, action_size: int) -> Networks:
     return Networks(
-        actor=Actor(config.hidden, action_size),
-        critic=TwinCritic(config.hidden),
+        actor=Actor(config.hidden, action_size, init_scheme=config.network_init),
+        critic=TwinCritic(config.hidden, init_scheme=config.network_init),
         actor_tx=optax.adam(config.actor_lr),
         critic_tx=optax.adam(config.critic_lr),
         alpha_tx=optax.adam(config.alpha_lr),

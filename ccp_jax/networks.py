@@ -5,6 +5,7 @@ by vmapping `init` and `apply`.
 """
 from __future__ import annotations
 
+import math
 from typing import Callable, Sequence
 
 import flax.linen as nn
@@ -14,18 +15,40 @@ import jax.numpy as jnp
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0  # RLkit's clamp
 
 
+def rlkit_fanin_init(key: jax.Array, shape: Sequence[int], dtype=jnp.float32) -> jax.Array:
+    """RLkit's `fanin_init` of a hidden layer: U(±1/√d), where d is the first dimension of the torch
+    weight [out, in] — the layer's output size, not its fan-in. A flax kernel is [in, out]."""
+    bound = 1.0 / math.sqrt(shape[-1])
+    return jax.random.uniform(key, shape, dtype, -bound, bound)
+
+
+def symmetric_uniform(scale: float) -> Callable:
+    """U(±scale), RLkit's initialiser of a network's last layer (`init_w`)."""
+    return lambda key, shape, dtype=jnp.float32: jax.random.uniform(key, shape, dtype, -scale, scale)
+
+
 class MLP(nn.Module):
-    """MLP with a linear output layer; ReLU hidden layers unless a subclass sets `activation`."""
+    """MLP with a linear output layer; ReLU hidden layers unless a subclass sets `activation`.
+
+    `init_scheme`: "flax" (lecun-normal kernels, zero biases) or "rlkit" (RLkit's: `rlkit_fanin_init`
+    hidden kernels, an output kernel U(±`out_init_w`), zero biases), so the initial outputs are
+    close to 0 everywhere: Q ≈ 0 and a policy of mean 0 and log-std 0 in every state.
+    """
 
     hidden: Sequence[int]
     out: int
     activation: Callable[[jax.Array], jax.Array] = nn.relu
+    init_scheme: str = "flax"
+    out_init_w: float = 3e-3
 
     @nn.compact
     def __call__(self, x: jax.Array) -> jax.Array:
+        rlkit = self.init_scheme == "rlkit"
+        hidden_init = rlkit_fanin_init if rlkit else nn.linear.default_kernel_init
         for h in self.hidden:
-            x = self.activation(nn.Dense(h)(x))
-        return nn.Dense(self.out)(x)
+            x = self.activation(nn.Dense(h, kernel_init=hidden_init)(x))
+        out_init = symmetric_uniform(self.out_init_w) if rlkit else nn.linear.default_kernel_init
+        return nn.Dense(self.out, kernel_init=out_init)(x)
 
 
 class Actor(nn.Module):
@@ -33,10 +56,12 @@ class Actor(nn.Module):
 
     hidden: Sequence[int]
     action_size: int
+    init_scheme: str = "flax"
 
     @nn.compact
     def __call__(self, obs: jax.Array) -> tuple[jax.Array, jax.Array]:
-        out = MLP(self.hidden, 2 * self.action_size)(obs)
+        # RLkit's TanhGaussianPolicy draws both heads' kernels from U(±1e-3) (and the log-std bias too; ours is 0).
+        out = MLP(self.hidden, 2 * self.action_size, init_scheme=self.init_scheme, out_init_w=1e-3)(obs)
         mean, log_std = jnp.split(out, 2, axis=-1)
         return mean, jnp.clip(log_std, LOG_STD_MIN, LOG_STD_MAX)
 
@@ -45,12 +70,13 @@ class TwinCritic(nn.Module):
     """Two independent Q-networks: (obs [..., o], act [..., a]) -> q [2, ...]."""
 
     hidden: Sequence[int]
+    init_scheme: str = "flax"
 
     @nn.compact
     def __call__(self, obs: jax.Array, act: jax.Array) -> jax.Array:
         twin = nn.vmap(MLP, variable_axes={"params": 0}, split_rngs={"params": True},
                        in_axes=None, out_axes=0, axis_size=2)
-        return twin(self.hidden, 1)(jnp.concatenate([obs, act], -1))[..., 0]
+        return twin(self.hidden, 1, init_scheme=self.init_scheme)(jnp.concatenate([obs, act], -1))[..., 0]
 
 
 def sample_action(mean: jax.Array, log_std: jax.Array, key: jax.Array,

@@ -21,7 +21,7 @@ from jax.experimental import multihost_utils
 from tqdm.auto import tqdm
 
 from ccp_jax import checkpoint, loggers, outputs
-from ccp_jax.config import (PRESETS, Config, ConfigError, NextAction, Normaliser, PresetName, TanhLogProb,
+from ccp_jax.config import (PRESETS, Config, ConfigError, NetworkInit, NextAction, Normaliser, PresetName, TanhLogProb,
                              make_config, parse_eta, parse_eta_vector)
 from ccp_jax.envs import make_env, user_env
 from ccp_jax.trainer import check_members_at_once, make_grid_train
@@ -73,6 +73,8 @@ class Args:
     """Save a checkpoint every K epochs (and always after the last); 0: only after the last."""
     num_envs: Optional[int] = None
     hidden: Optional[tuple[int, ...]] = None
+    network_init: Optional[NetworkInit] = None
+    """Initial weights: flax (default: lecun-normal kernels) or rlkit (RLkit's SAC: fan-in uniform hidden layers, last layers U(±3e-3) critic / U(±1e-3) actor)."""
     batch_size: Optional[int] = None
     buffer_size: Optional[int] = None
     steps_per_epoch: Optional[int] = None
@@ -126,7 +128,7 @@ class Args:
     process_id: Optional[int] = None
 
 
-OVERRIDES = ("total_steps", "num_envs", "hidden", "batch_size", "buffer_size", "steps_per_epoch",
+OVERRIDES = ("total_steps", "num_envs", "hidden", "network_init", "batch_size", "buffer_size", "steps_per_epoch",
              "train_loops_per_epoch", "train_cycles_per_epoch", "eval_episodes", "max_episode_steps", "gamma", "absorbing_stages",
              "absorbing_success", "tanh_log_prob", "normaliser", "norm_floor", "norm_ema_rate", "next_action", "tau",
              "actor_lr", "critic_lr", "alpha_lr", "target_entropy", "start_steps", "normalise_last", "eta_auto_range",

@@ -23,6 +23,8 @@ from ccp_jax.train import Args, config_from_args
     (dict(hidden=(64, 0)), "hidden"),
     (dict(seeds=(1, 1)), "seeds"),
     (dict(tanh_log_prob="torch"), "tanh_log_prob"),
+    (dict(network_init="torch"), "network_init"),
+    (dict(train_cycles_per_epoch=3), "train_cycles_per_epoch"),  # tiny: 100 vectorised steps, 20 loops
     (dict(target_entropy=float("nan")), "target_entropy"),
     (dict(no_such_field=1), "no_such_field"),
 ])

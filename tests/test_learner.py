@@ -196,3 +196,29 @@ def test_target_entropy_sets_which_way_alpha_moves(csac):
     assert np.all(moved[-50.0] == -1) and np.all(moved[50.0] == 1)
     # The default is −|A| = −2: α falls for agents whose batch entropy is above it.
     np.testing.assert_array_equal(moved[None], np.where(entropy > -ACT, -1, 1))
+
+
+def test_rlkit_network_init_bounds_each_layer_and_starts_every_output_near_zero():
+    """RLkit's init: hidden kernels U(±1/√out) (its fanin_init reads the torch weight's first dimension),
+    last kernels U(±1e-3) (actor) and U(±3e-3) (critic), biases 0; flax's lecun-normal otherwise."""
+    obs = jax.random.uniform(jax.random.PRNGKey(1), (512, 24))
+    act = jax.random.uniform(jax.random.PRNGKey(2), (512, 2), minval=-1, maxval=1)
+    spread = {}
+    for scheme in ("flax", "rlkit"):
+        nets = make_networks(make_config("small", network_init=scheme), action_size=2)
+        agents = init_agents(nets, jax.random.PRNGKey(0), 2, obs_size=24, action_size=2)
+        actor = jax.tree.map(lambda x: x[0], agents.actor)["params"]["MLP_0"]
+        critic = jax.tree.map(lambda x: x[0], agents.critic)["params"]["VmapMLP_0"]
+        kernels = [actor[f"Dense_{i}"]["kernel"] for i in range(3)] + [critic[f"Dense_{i}"]["kernel"] for i in range(3)]
+        assert [k.shape[-2:] for k in kernels] == [(24, 64), (64, 64), (64, 4), (26, 64), (64, 64), (64, 1)]
+        mean, log_std = nets.actor.apply(jax.tree.map(lambda x: x[0], agents.actor), obs)
+        q = nets.critic.apply(jax.tree.map(lambda x: x[0], agents.critic), obs, act)
+        spread[scheme] = max(float(jnp.abs(x).max()) for x in (mean, log_std, q))
+        if scheme == "rlkit":
+            for k, bound in zip(kernels, [1 / 8, 1 / 8, 1e-3, 1 / 8, 1 / 8, 3e-3]):
+                assert float(jnp.abs(k).max()) <= bound
+                np.testing.assert_allclose(float(jnp.std(k)), bound / np.sqrt(3), rtol=0.2)  # uniform, not a corner
+            assert spread[scheme] < 0.01
+        else:  # lecun normal: std 1/√fan_in
+            np.testing.assert_allclose(float(jnp.std(kernels[3])), 1 / np.sqrt(26), rtol=0.15)
+    assert spread["flax"] > 0.1  # flax's outputs start state-dependent, RLkit's do not

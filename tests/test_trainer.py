@@ -153,11 +153,12 @@ def test_every_hyperparameter_reaches_the_config_from_the_cli():
     args = tyro.cli(Args, args=["--preset", "tiny", "--tau", "0.01", "--actor-lr", "1e-3", "--critic-lr", "2e-3",
                                 "--alpha-lr", "3e-3", "--start-steps", "50", "--normalise-last", "True",
                                 "--eta-auto-range", "0.2", "0.8", "--next-action", "acting", "--normaliser", "ema",
-                                "--train-cycles-per-epoch", "10"])
+                                "--train-cycles-per-epoch", "10", "--network-init", "rlkit"])
     config = config_from_args(args)
     assert (config.tau, config.actor_lr, config.critic_lr, config.alpha_lr) == (0.01, 1e-3, 2e-3, 3e-3)
     assert (config.start_steps, config.normalise_last, config.eta_auto_range) == (50, True, (0.2, 0.8))
     assert (config.next_action, config.normaliser, config.train_cycles_per_epoch) == ("acting", "ema", 10)
+    assert config.network_init == "rlkit"
     with pytest.raises(ConfigError, match="^eta_auto_range:"):
         config_from_args(tyro.cli(Args, args=["--preset", "tiny", "--eta-auto-range", "0.9", "0.1"]))
 
@@ -184,7 +185,7 @@ def test_train_cycles_interleave_collection_and_updates(cycles, updates):
 
 
 def test_train_cycles_must_divide_the_epoch():
-    with pytest.raises(ConfigError, match="^train_cycles_per_epoch:"):
-        make_config("tiny", train_cycles_per_epoch=3)  # 100 vectorised steps, 20 loops
-    with pytest.raises(ConfigError, match="^train_cycles_per_epoch:"):
-        make_config("tiny", train_cycles_per_epoch=0)
+    make_config("tiny", train_cycles_per_epoch=20)  # divides 100 vectorised steps and 20 loops
+    for cycles in (0, 3, 25, 100):  # 25 and 100 divide the steps but not the loops
+        with pytest.raises(ConfigError, match="^train_cycles_per_epoch:"):
+            make_config("tiny", train_cycles_per_epoch=cycles)
