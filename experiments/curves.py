@@ -1,6 +1,6 @@
 """The paper's success-curve figures: per domain, CSAC at its best ratio against SAC and Naive.
 
-    python experiments/curves.py --scale cpu [--domains maze2 maze3] [--with-auto]
+    python experiments/curves.py --scale cpu [--domains maze2 maze3] [--with-auto] [--all-etas]
 
 The curves come from the same runs as Table I (`table1.py`, same scale and
 folder): missing runs are trained (or resumed) first, so either script can be
@@ -32,6 +32,8 @@ class Args:
     algos: tuple[str, ...] = ("csac", "sac", "naive", "tp")
     with_auto: bool = True
     """Also draw CSAC with η = auto (issue 9) next to the best swept ratio."""
+    all_etas: bool = False
+    """Draw every swept CSAC ratio, not only the best (into curves_all_<domain>.png, stage2_all_<domain>.png, curves_all.png)."""
     out: Optional[Path] = None
     """Results folder shared with table1.py (default experiments/results/table1_<scale>)."""
     plot_only: bool = False
@@ -42,8 +44,9 @@ STAGE2 = "stage_fraction/1"
 
 
 def domain_groups(out: Path, domain: str, algos: tuple[str, ...], with_auto: bool,
-                  metric: str = "success_rate") -> dict:
-    """Curve groups of `metric` to draw for one domain: the best CSAC ratio (and auto), then each baseline."""
+                  metric: str = "success_rate", all_etas: bool = False) -> dict:
+    """Curve groups of `metric` to draw for one domain: the best CSAC ratio (every ratio with `all_etas`;
+    and auto), then each baseline."""
     groups = {}
     for algo in algos:
         folders = finished_runs(out, domain, algo)
@@ -52,7 +55,8 @@ def domain_groups(out: Path, domain: str, algos: tuple[str, ...], with_auto: boo
         loaded = plot.load_curves(folders, metric)
         if algo == "csac":
             best = best_swept_eta(merged_summary(folders))
-            loaded = {g: s for g, s in loaded.items() if g[2] == best or (with_auto and AUTO in g[2])}
+            loaded = {g: s for g, s in loaded.items()
+                      if (with_auto and AUTO in g[2]) or (AUTO not in g[2] and (all_etas or g[2] == best))}
         groups.update(loaded)
     return groups
 
@@ -62,21 +66,23 @@ def main(args: Args) -> list[Path]:
     if not args.plot_only:
         for domain in args.domains:
             train_domain(args.scale, domain, args.algos, out)
-    drawn = {d: g for d in args.domains if (g := domain_groups(out, d, args.algos, args.with_auto))}
+    tag = "_all" if args.all_etas else ""  # the best-ratio figures stay as they are
+    drawn = {d: g for d in args.domains if (g := domain_groups(out, d, args.algos, args.with_auto,
+                                                             all_etas=args.all_etas))}
     written = []
     for domain, groups in drawn.items():
-        path = out / f"curves_{domain}.png"
+        path = out / f"curves{tag}_{domain}.png"
         plot.curves(groups, title=TITLES[domain]).savefig(path)
-        stage2 = domain_groups(out, domain, args.algos, args.with_auto, STAGE2)
-        stage2_path = out / f"stage2_{domain}.png"
+        stage2 = domain_groups(out, domain, args.algos, args.with_auto, STAGE2, all_etas=args.all_etas)
+        stage2_path = out / f"stage2{tag}_{domain}.png"
         plot.curves(stage2, STAGE2, title=f"{TITLES[domain]}: episodes reaching stage 2").savefig(stage2_path)
         written += [path, stage2_path]
     if drawn:
         fig = plot.new_figure(4.2 * len(drawn), 3.4)
         for i, (domain, groups) in enumerate(drawn.items()):
             plot.curves(groups, ax=fig.add_subplot(1, len(drawn), i + 1), title=TITLES[domain])
-        fig.savefig(out / "curves.png")
-        written.append(out / "curves.png")
+        fig.savefig(out / f"curves{tag}.png")
+        written.append(out / f"curves{tag}.png")
     for path in written:
         print(f"wrote {path}")
     return written

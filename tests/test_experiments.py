@@ -78,6 +78,14 @@ def test_best_ratio_ignores_auto_and_curves_are_drawn(maze2_runs):
                                       plot_only=True))
     assert [p.name for p in written] == ["curves_maze2.png", "stage2_maze2.png", "curves.png"]
     assert all(p.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" for p in written)
+    _fake_run(common.swept_folder(maze2_runs, "maze2", (0.5,)),
+              common.SCALES["smoke"].config("maze2", "csac", etas=[(0.5,)]), {0: [0, 0, 0], 1: [0, 0, 0]})
+    every = curves.domain_groups(maze2_runs, "maze2", ("csac",), with_auto=False, all_etas=True)
+    assert {g[2] for g in every} == {(0.1, 1.0), (0.5, 1.0)}  # every swept ratio, auto only when asked
+    assert set(curves.domain_groups(maze2_runs, "maze2", ("csac",), with_auto=False)) == {("maze-2", "csac", (0.1, 1.0))}
+    written = curves.main(curves.Args(scale="smoke", domains=("maze2",), algos=("csac", "sac"), out=maze2_runs,
+                                      plot_only=True, all_etas=True))
+    assert [p.name for p in written] == ["curves_all_maze2.png", "stage2_all_maze2.png", "curves_all.png"]
 
 
 def test_subset_sweeps_join_the_table_curves_and_eta_auto_rows_once(maze2_runs):
