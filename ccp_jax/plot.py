@@ -52,6 +52,13 @@ def _value(row: dict, metric: str) -> Optional[float]:
     return None if value is None else float(value)
 
 
+def refuse_to_pool(first_dir: Path, first: Config, run_dir: Path, settings: Config, member: str, hint: str) -> None:
+    """ValueError if two run folders that both hold `member` differ in settings beyond grid and budget
+    (`GRID_FIELDS`): they are different experiments, whose seeds must not be pooled."""
+    if differ := first.differing(settings, ignore=GRID_FIELDS):
+        raise ValueError(f"{first_dir} and {run_dir} both hold {member} but differ in {', '.join(differ)}{hint}")
+
+
 def load_curves(run_dirs: Sequence[str | Path], metric: str = "success_rate") -> dict[Group, list[Series]]:
     """Per (task, algo, eta vector): one (env_steps int64[E], values float64[E]) series per grid member.
 
@@ -76,10 +83,8 @@ def load_curves(run_dirs: Sequence[str | Path], metric: str = "success_rate") ->
             values = np.asarray([v for _, v in points], np.float64)
             group, seed = (_task(config), rows[0]["algo"], tuple(rows[0]["eta"])), rows[0]["seed"]
             if (group, seed) in seen:
-                first_dir, first = seen[group, seed]
-                if differ := first.differing(settings, ignore=GRID_FIELDS):
-                    raise ValueError(f"{first_dir} and {run_dir} both hold {group_label(group)} seed {seed} but differ "
-                                     f"in {', '.join(differ)}; give each run its own label (--labels)")
+                refuse_to_pool(*seen[group, seed], run_dir, settings, f"{group_label(group)} seed {seed}",
+                               "; give each run its own label (--labels)")
                 continue
             seen[group, seed] = run_dir, settings
             groups[group].append((steps, values))

@@ -160,7 +160,7 @@ def merged_summary(folders: Sequence[Path]) -> Optional[dict]:
     member in two of them raises ValueError naming the fields (as `plot.load_curves`).
     """
     from ccp_jax.config import Config
-    from ccp_jax.plot import GRID_FIELDS
+    from ccp_jax.plot import refuse_to_pool
 
     if not folders:
         return None
@@ -171,10 +171,8 @@ def merged_summary(folders: Sequence[Path]) -> Optional[dict]:
         for m in summary["members"]:
             key = (tuple(m["eta"]), m["seed"])
             if key in seen:
-                first_folder, first = seen[key]
-                if differ := first.differing(settings, ignore=GRID_FIELDS):
-                    raise ValueError(f"{first_folder} and {folder} both hold eta {list(key[0])} seed {key[1]} but "
-                                     f"differ in {', '.join(differ)}: they are different experiments")
+                refuse_to_pool(*seen[key], folder, settings, f"eta {list(key[0])} seed {key[1]}",
+                               ": they are different experiments")
                 continue
             seen[key] = folder, settings
             members.append({**m, "run": str(folder), "wall_s": summary.get("wall_s")})
