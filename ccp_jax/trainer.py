@@ -22,6 +22,7 @@ from ccp_jax.buffer import ReplayBuffer, Transition
 from ccp_jax.collect import EvalMetrics, make_collect, make_evaluate
 from ccp_jax.config import Config, ConfigError
 from ccp_jax.learner import AgentState, Networks, UpdateMetrics, init_agents, make_learner, make_networks
+from envs_mjx import cpu_compiler_options
 
 
 class TrainState(struct.PyTreeNode):
@@ -178,8 +179,11 @@ class GridTrainer:
 
         step = jax.shard_map(local_step, mesh=mesh, in_specs=(spec, spec), out_specs=(spec, spec), check_vma=False)
         self._init = jax.jit(jax.vmap(trainer.init), in_shardings=self.sharding, out_shardings=self.sharding)
+        # Compile options only apply where they were measured: CPU (`envs_mjx.cpu_compiler_options`).
+        self.compiler_options = cpu_compiler_options(env) if self.devices[0].platform == "cpu" else {}
         self._step = jax.jit(step, in_shardings=(self.sharding, self.sharding),
-                             out_shardings=(self.sharding, self.sharding), donate_argnums=0)
+                             out_shardings=(self.sharding, self.sharding), donate_argnums=0,
+                             compiler_options=self.compiler_options or None)
 
     def _pad(self, x) -> jax.Array:
         x = jnp.asarray(x)

@@ -189,3 +189,21 @@ def test_train_cycles_must_divide_the_epoch():
     for cycles in (0, 3, 25, 100):  # 25 and 100 divide the steps but not the loops
         with pytest.raises(ConfigError, match="^train_cycles_per_epoch:"):
             make_config("tiny", train_cycles_per_epoch=cycles)
+
+
+def test_the_epoch_compiles_with_fusion_emitters_on_unless_the_env_runs_mjx():
+    from envs_mjx import cpu_compiler_options
+    from envs_mjx.maze import Maze
+
+    class MjxMaze(Maze):
+        @property
+        def backend(self) -> str:
+            return "mjx"
+
+    on = {"xla_cpu_use_fusion_emitters": True}
+    assert cpu_compiler_options(Maze(rooms=2)) == on
+    assert cpu_compiler_options(MjxMaze(rooms=2)) == {}
+    assert cpu_compiler_options(object()) == {}  # backend unknown: treated as MJX
+    config = make_config("tiny", rooms=2)
+    assert make_grid_train(config, Maze(rooms=2)).compiler_options == on
+    assert make_grid_train(config, MjxMaze(rooms=2)).compiler_options == {}

@@ -6,6 +6,7 @@ second compile is named and kept out of the timed epochs too.
 """
 from __future__ import annotations
 
+import os
 import statistics
 import time
 from unittest import mock
@@ -19,6 +20,18 @@ from ccp_jax.collect import make_evaluate
 from ccp_jax.config import Config
 from ccp_jax.envs import make_env
 from ccp_jax.trainer import make_grid_train
+from envs_mjx import XLA_CPU_FLAG
+
+
+def emitters_on_everywhere() -> None:
+    """XLA's CPU fusion emitters on for every program of this process (XLA's default); call before JAX computes.
+
+    Our trainer compiles the maze epoch with them on (`envs_mjx.cpu_compiler_options`) while importing
+    `ccp_jax` turns them off process-wide for MJX, which would slow only the other side (brax, the
+    reference) of a maze comparison.
+    """
+    flags = os.environ.get("XLA_FLAGS", "").replace(XLA_CPU_FLAG, "")
+    os.environ["XLA_FLAGS"] = (flags + " --xla_cpu_use_fusion_emitters=true").strip()
 
 
 def no_eval(config, env, actor):

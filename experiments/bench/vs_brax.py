@@ -48,7 +48,7 @@ from ccp_jax.config import make_config
 from envs_mjx.maze import Maze
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from timed import TimedGrid  # noqa: E402
+from timed import TimedGrid, emitters_on_everywhere  # noqa: E402
 from update_speed import matmul_roof  # noqa: E402
 
 
@@ -221,4 +221,5 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
+    emitters_on_everywhere()  # both sides compile alike (timed.py)
     main(tyro.cli(Args))

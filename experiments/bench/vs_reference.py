@@ -21,7 +21,7 @@ import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "crosscheck"))
 from reference_csac import Settings, make_run  # noqa: E402
-from timed import TimedEpochs, TimedGrid  # noqa: E402
+from timed import TimedEpochs, TimedGrid, emitters_on_everywhere  # noqa: E402
 
 from ccp_jax.config import make_config  # noqa: E402
 from envs_mjx.maze import Maze  # noqa: E402
@@ -68,4 +68,5 @@ def main(args: Args) -> None:
 
 
 if __name__ == "__main__":
+    emitters_on_everywhere()  # both sides compile alike (timed.py)
     main(tyro.cli(Args))

@@ -1,0 +1,58 @@
+"""The trainer's maze epoch compiled with XLA's CPU fusion emitters on (what it does) against off (the process flag).
+
+    python experiments/bench/fusion_emitters.py                      # 3-room CSAC, one run (SPEC §7's speed yardstick)
+    python experiments/bench/fusion_emitters.py --rooms 2 --seeds 3  # 2-room grid of 3, members one at a time
+
+Importing `ccp_jax` turns the emitters off process-wide (`envs_mjx.cpu_xla_flags`: MJX needs it), and the
+trainer compiles its epoch with them back on for an env that does not run MJX
+(`envs_mjx.cpu_compiler_options`). Both versions of the same grid trainer (SPEC §7's settings: "small" preset,
+[64, 64], the paper's epoch of 5000 env steps and 1000 joint updates, buffer 2e5, 10 evaluation episodes) are
+compiled in this one process; their epochs alternate (order swapped every round) and the table gives each one's
+median and the median of the paired ratios on/off.
+"""
+from __future__ import annotations
+
+import dataclasses
+import statistics
+import sys
+from pathlib import Path
+from unittest import mock
+
+import tyro
+
+import ccp_jax.trainer as trainer_module
+from ccp_jax.config import make_config
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from timed import TimedGrid  # noqa: E402
+
+
+@dataclasses.dataclass
+class Args:
+    rooms: int = 3
+    seeds: int = 1
+    """Grid size (members one at a time on CPU, the default)."""
+    reps: int = 8
+    """Timed epochs of each version."""
+
+
+def main(args: Args) -> None:
+    config = make_config("small", rooms=args.rooms, seeds=tuple(range(args.seeds)), buffer_size=200_000)
+    with mock.patch.object(trainer_module, "cpu_compiler_options", lambda env: {}):
+        off = TimedGrid(config)
+    on = TimedGrid(config)
+    assert on.trainer.compiler_options and not off.trainer.compiler_options
+    for r in range(args.reps):
+        for timed in ((off, on) if r % 2 == 0 else (on, off)):
+            timed.epoch()
+    ratios = [a / b for a, b in zip(on.times, off.times)]
+    print(f"\n{args.rooms}-room CSAC, grid of {args.seeds}, paper epoch, {args.reps} alternating epochs each")
+    print(f"{'emitters':>9} {'epoch s (median)':>17} {'min':>6} {'max':>6} {'compile s':>10}")
+    for name, timed in (("off", off), ("on", on)):
+        print(f"{name:>9} {timed.median:17.3f} {min(timed.times):6.2f} {max(timed.times):6.2f} {timed.compile_s:10.1f}")
+    print(f"on / off, median of the paired ratios: {statistics.median(ratios):.3f} "
+          f"(min {min(ratios):.3f}, max {max(ratios):.3f})")
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args))
