@@ -23,6 +23,7 @@ from ccp_jax import buffer as replay
 from ccp_jax.buffer import Transition
 from ccp_jax.config import make_config
 from ccp_jax.learner import init_agents, make_learner, make_networks
+from timed import emitters_on_everywhere  # this folder: the script's own
 
 
 @dataclasses.dataclass
@@ -99,4 +100,5 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
+    emitters_on_everywhere()  # the update compiled as the trainer compiles the maze epoch
     main(tyro.cli(Args))
