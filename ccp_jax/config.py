@@ -86,6 +86,8 @@ class Config:
     alpha_lr: float = 3e-4
     # The entropy each α steers its policy towards; None: −|A| (RLkit's, the paper's).
     target_entropy: float | None = None
+    # Every α's value before training (RLkit's: 1, log α = 0).
+    initial_alpha: float = 1.0
     # CCP.
     absorbing_success: bool = True
     # Past its stage a subtask's reward is 1 forever, so its critic bootstraps the exact
@@ -269,6 +271,8 @@ class Config:
             raise ConfigError("norm_floor", f"must be positive, got {self.norm_floor}")
         if self.algo == "tp":
             self._validate_tp()
+        if not (math.isfinite(self.initial_alpha) and self.initial_alpha > 0):
+            raise ConfigError("initial_alpha", f"must be a positive finite number, got {self.initial_alpha}")
         if self.target_entropy is not None and not math.isfinite(self.target_entropy):
             raise ConfigError("target_entropy", f"must be a finite number (or None for −|A|), got {self.target_entropy}")
         lo, hi = self.eta_auto_range

@@ -10,6 +10,7 @@ wire up without any Python loop over agents.
 from __future__ import annotations
 
 import functools
+import math
 from typing import Any, Callable, NamedTuple
 
 import jax
@@ -68,10 +69,11 @@ def make_networks(config: Config, action_size: int) -> Networks:
 
 
 def init_agents(nets: Networks, key: jax.Array, num_agents: int, obs_size: int, action_size: int,
-                value_range: float = 1.0) -> AgentState:
+                value_range: float = 1.0, initial_alpha: float = 1.0) -> AgentState:
     """Independently initialised agents, stacked; targets start equal to the critics.
 
-    `value_range` is the largest value a critic can take (1/(1 − γ) for rewards in [0, 1]).
+    `value_range` is the largest value a critic can take (1/(1 − γ) for rewards in [0, 1]);
+    `initial_alpha` every temperature's starting value.
     """
     obs, act = jnp.zeros((1, obs_size)), jnp.zeros((1, action_size))
 
@@ -79,7 +81,7 @@ def init_agents(nets: Networks, key: jax.Array, num_agents: int, obs_size: int, 
         k_actor, k_critic = jax.random.split(k)
         actor = nets.actor.init(k_actor, obs)
         critic = nets.critic.init(k_critic, obs, act)
-        log_alpha = jnp.zeros((), jnp.float32)
+        log_alpha = jnp.full((), math.log(initial_alpha), jnp.float32)
         norm = NormState(lo=jnp.zeros((2,)), hi=jnp.full((2,), value_range, jnp.float32))  # not weak-typed: no recompile
         return AgentState(norm=norm, actor=actor, critic=critic, target_critic=critic, log_alpha=log_alpha,
                           actor_opt=nets.actor_tx.init(actor), critic_opt=nets.critic_tx.init(critic),

@@ -91,6 +91,8 @@ class Args:
     alpha_lr: Optional[float] = None
     target_entropy: Optional[float] = None
     """Entropy the temperatures α steer the policies towards (default −|A|, the action size negated)."""
+    initial_alpha: Optional[float] = None
+    """Every temperature α before training (default 1, RLkit's)."""
     start_steps: Optional[int] = None
     """Uniform-random env steps before the policies act (default 1000)."""
     normalise_last: Optional[bool] = None
@@ -131,7 +133,7 @@ class Args:
 OVERRIDES = ("total_steps", "num_envs", "hidden", "network_init", "batch_size", "buffer_size", "steps_per_epoch",
              "train_loops_per_epoch", "train_cycles_per_epoch", "eval_episodes", "max_episode_steps", "gamma", "absorbing_stages",
              "absorbing_success", "tanh_log_prob", "normaliser", "norm_floor", "norm_ema_rate", "next_action", "tau",
-             "actor_lr", "critic_lr", "alpha_lr", "target_entropy", "start_steps", "normalise_last", "eta_auto_range",
+             "actor_lr", "critic_lr", "alpha_lr", "target_entropy", "initial_alpha", "start_steps", "normalise_last", "eta_auto_range",
              "primitives_member", "tp_max_steps", "tp_init_episodes", "tp_prox_updates", "tp_ppo_epochs", "tp_buffer_size")
 
 

@@ -26,6 +26,8 @@ from ccp_jax.train import Args, config_from_args
     (dict(network_init="torch"), "network_init"),
     (dict(train_cycles_per_epoch=3), "train_cycles_per_epoch"),  # tiny: 100 vectorised steps, 20 loops
     (dict(target_entropy=float("nan")), "target_entropy"),
+    (dict(initial_alpha=0.0), "initial_alpha"),
+    (dict(initial_alpha=float("inf")), "initial_alpha"),
     (dict(no_such_field=1), "no_such_field"),
 ])
 def test_bad_config_names_the_field(overrides, field):

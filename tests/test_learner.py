@@ -222,3 +222,11 @@ def test_rlkit_network_init_bounds_each_layer_and_starts_every_output_near_zero(
         else:  # lecun normal: std 1/√fan_in
             np.testing.assert_allclose(float(jnp.std(kernels[3])), 1 / np.sqrt(26), rtol=0.15)
     assert spread["flax"] > 0.1  # flax's outputs start state-dependent, RLkit's do not
+
+
+def test_initial_alpha_sets_every_temperature_before_training():
+    config = make_config("tiny", rooms=2)
+    nets = make_networks(config, ACT)
+    for alpha in (1.0, 0.05):
+        agents = init_agents(nets, jax.random.PRNGKey(0), 2, OBS, ACT, initial_alpha=alpha)
+        np.testing.assert_allclose(np.exp(np.asarray(agents.log_alpha)), [alpha, alpha], rtol=1e-6)
