@@ -28,7 +28,8 @@ import os
 import sys
 
 # XLA's CPU fusion emitters make MJX ~50x slower on CPU (PEG_NOTES.md); this switches them off.
-XLA_CPU_FLAG = "--xla_cpu_use_fusion_emitters=false"
+XLA_CPU_EMITTERS = "xla_cpu_use_fusion_emitters"  # the option's name, in $XLA_FLAGS and in compile options
+XLA_CPU_FLAG = f"--{XLA_CPU_EMITTERS}=false"
 
 
 def cpu_xla_flags(flags: str | None = None) -> str:
@@ -38,7 +39,7 @@ def cpu_xla_flags(flags: str | None = None) -> str:
     backend. A user's own setting of the flag is kept.
     """
     flags = os.environ.get("XLA_FLAGS", "") if flags is None else flags
-    if "xla_cpu_use_fusion_emitters" in flags:
+    if XLA_CPU_EMITTERS in flags:
         return flags
     return (flags + " " + XLA_CPU_FLAG).strip()
 
@@ -52,7 +53,7 @@ def cpu_compiler_options(env) -> dict[str, bool]:
     """
     if getattr(env, "backend", "mjx") == "mjx":
         return {}
-    return {"xla_cpu_use_fusion_emitters": True}
+    return {XLA_CPU_EMITTERS: True}
 
 
 # mujoco.mjx.warp print()s these two lines at import whenever the optional Warp backend is absent (always,

@@ -20,7 +20,7 @@ from ccp_jax.collect import make_evaluate
 from ccp_jax.config import Config
 from ccp_jax.envs import make_env
 from ccp_jax.trainer import make_grid_train
-from envs_mjx import XLA_CPU_FLAG
+from envs_mjx import XLA_CPU_EMITTERS, XLA_CPU_FLAG
 
 
 def emitters_on_everywhere() -> None:
@@ -31,7 +31,7 @@ def emitters_on_everywhere() -> None:
     reference) of a maze comparison.
     """
     flags = os.environ.get("XLA_FLAGS", "").replace(XLA_CPU_FLAG, "")
-    os.environ["XLA_FLAGS"] = (flags + " --xla_cpu_use_fusion_emitters=true").strip()
+    os.environ["XLA_FLAGS"] = (flags + f" --{XLA_CPU_EMITTERS}=true").strip()
 
 
 def no_eval(config, env, actor):
