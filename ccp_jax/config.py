@@ -24,6 +24,8 @@ TanhLogProb = Literal["rlkit", "exact"]
 TANH_LOG_PROBS = ("rlkit", "exact")
 NetworkInit = Literal["flax", "rlkit"]
 NETWORK_INITS = ("flax", "rlkit")
+CoopScale = Literal["unit", "own"]
+COOP_SCALES = ("unit", "own")
 AUTO = "auto"  # a ratio estimated during training (η*), see `Config.eta_auto_range`
 
 
@@ -105,6 +107,10 @@ class Config:
     normaliser: Normaliser = "batch"
     norm_ema_rate: float = 0.005
     norm_floor: float = 1.0
+    # Units of the cooperative objective C_n = η Q̂_n + (1 − η) Q̂_{n+1} in the actor loss: "unit" (the
+    # paper: C_n in [0, 1]) or "own" (C_n times the own critic's normaliser scale, i.e. Q_n's units), so
+    # that α_n weighs entropy against values as Naive's α does, in the actor loss and the critic target alike.
+    coop_scale: CoopScale = "unit"
     eta_auto_range: tuple[float, float] = (0.05, 0.95)
     # TP (Transition Policies, Lee et al. 2019; ccp_jax/tp). Primitives: a finished --algo naive run.
     primitives: str | None = None
@@ -265,6 +271,8 @@ class Config:
             raise ConfigError("network_init", f"unknown init {self.network_init!r}; choose one of {NETWORK_INITS}")
         if self.normaliser not in NORMALISERS:
             raise ConfigError("normaliser", f"unknown normaliser {self.normaliser!r}; choose one of {NORMALISERS}")
+        if self.coop_scale not in COOP_SCALES:
+            raise ConfigError("coop_scale", f"unknown scale {self.coop_scale!r}; choose one of {COOP_SCALES}")
         if not 0.0 < self.norm_ema_rate <= 1.0:
             raise ConfigError("norm_ema_rate", f"must be in (0, 1], got {self.norm_ema_rate}")
         if self.norm_floor <= 0:

@@ -182,6 +182,10 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
                     range_next=jnp.where(has_next, scale[:, 1], 0.0))
         return q_hat, eta_used, new, diag
 
+    def coop_units(diag) -> jax.Array:
+        """Per-agent factor on C_n, float32[N]: "own" undoes the own critic's scaling, so η = 1 is Naive's actor loss."""
+        return diag["range_own"] + config.norm_eps if config.coop_scale == "own" else jnp.ones((n_agents,))
+
     acting_next = cooperative and config.next_action == "acting"
 
     def successor_takes_over(actor, batch: Transition, next_act, next_logp, next_alpha, alpha, k_next):
@@ -230,7 +234,8 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
         if cooperative or config.normalise_last:
             # Own and next critic per agent, [N, 2, B]; an agent without a next critic repeats its own.
             q_hat, eta_used, norm, diag = normalised(pair(q_pi_slots), eta, norm_state, ready)
-            coop = jax.vmap(losses.coop_actor_loss)(logp, q_hat[:, 0], q_hat[:, 1], eta_used, alpha)
+            units = coop_units(diag)
+            coop = jax.vmap(losses.coop_actor_loss)(logp, q_hat[:, 0], q_hat[:, 1], eta_used, alpha, units)
             pi_loss = jnp.where(coop_actor, coop, pi_loss)
         a_loss = jax.vmap(losses.alpha_loss, in_axes=(0, 0, None))(log_alpha, logp, target_entropy)
 
@@ -282,9 +287,11 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
         slots = slot_params(agents.critic)
 
         def weighted(a):
-            q_hat, eta_used, _, _ = normalised(pair(critic_min(slots, slot_data(batch.obs), slot_data(a))), eta,
-                                               agents.norm, jnp.zeros((n_agents,), bool))
-            return eta_used[:, None] * q_hat[:, 0], jnp.where(has_next[:, None], 1 - eta_used[:, None], 0.0) * q_hat[:, 1]
+            q_hat, eta_used, _, diag = normalised(pair(critic_min(slots, slot_data(batch.obs), slot_data(a))), eta,
+                                                  agents.norm, jnp.zeros((n_agents,), bool))
+            units = jax.lax.stop_gradient(coop_units(diag))[:, None]
+            return (units * eta_used[:, None] * q_hat[:, 0],
+                    units * jnp.where(has_next[:, None], 1 - eta_used[:, None], 0.0) * q_hat[:, 1])
 
         pulls = []
         for term in range(2):

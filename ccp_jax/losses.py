@@ -43,9 +43,14 @@ def normalise(q: jax.Array, eps: float, lo: jax.Array | None = None, scale: jax.
 
 
 def coop_actor_loss(log_prob: jax.Array, q_hat_own: jax.Array, q_hat_next: jax.Array, eta: jax.Array,
-                    alpha: jax.Array) -> jax.Array:
-    """CCP actor loss mean(α log π − [η Q̂_n + (1 − η) Q̂_{n+1}]) on normalised critics; arrays [B]."""
-    return jnp.mean(alpha * log_prob - (eta * q_hat_own + (1.0 - eta) * q_hat_next))
+                    alpha: jax.Array, units: jax.Array | float = 1.0) -> jax.Array:
+    """CCP actor loss mean(α log π − units · [η Q̂_n + (1 − η) Q̂_{n+1}]) on normalised critics; arrays [B].
+
+    `units` (a held-constant scalar) expresses the cooperative objective in other units:
+    1 is the paper's; the own critic's normaliser scale puts it in Q_n's units.
+    """
+    objective = jax.lax.stop_gradient(units) * (eta * q_hat_own + (1.0 - eta) * q_hat_next)
+    return jnp.mean(alpha * log_prob - objective)
 
 
 def sac_actor_loss(log_prob: jax.Array, q: jax.Array, alpha: jax.Array) -> jax.Array:

@@ -21,7 +21,7 @@ from jax.experimental import multihost_utils
 from tqdm.auto import tqdm
 
 from ccp_jax import checkpoint, loggers, outputs
-from ccp_jax.config import (PRESETS, Config, ConfigError, NetworkInit, NextAction, Normaliser, PresetName, TanhLogProb,
+from ccp_jax.config import (PRESETS, Config, ConfigError, CoopScale, NetworkInit, NextAction, Normaliser, PresetName, TanhLogProb,
                              make_config, parse_eta, parse_eta_vector)
 from ccp_jax.envs import make_env, user_env
 from ccp_jax.trainer import check_members_at_once, make_grid_train
@@ -104,6 +104,8 @@ class Args:
     norm_floor: Optional[float] = None
     """Smallest range the floor normaliser divides by, in reward units (default 1)."""
     norm_ema_rate: Optional[float] = None
+    coop_scale: Optional[CoopScale] = None
+    """Units of the cooperative objective in the actor loss: unit (the paper's, normalised to [0, 1], default) or own (times the own critic's normaliser scale: α in Q_n's units, as Naive's; η = 1 is Naive)."""
     absorbing_stages: Optional[bool] = None
     """Critic n bootstraps the exact value 1/(1 − γ) once stage n is done (default on; off = the paper's literal rule)."""
     next_action: Optional[NextAction] = None
@@ -132,7 +134,7 @@ class Args:
 
 OVERRIDES = ("total_steps", "num_envs", "hidden", "network_init", "batch_size", "buffer_size", "steps_per_epoch",
              "train_loops_per_epoch", "train_cycles_per_epoch", "eval_episodes", "max_episode_steps", "gamma", "absorbing_stages",
-             "absorbing_success", "tanh_log_prob", "normaliser", "norm_floor", "norm_ema_rate", "next_action", "tau",
+             "absorbing_success", "tanh_log_prob", "normaliser", "norm_floor", "norm_ema_rate", "coop_scale", "next_action", "tau",
              "actor_lr", "critic_lr", "alpha_lr", "target_entropy", "initial_alpha", "start_steps", "normalise_last", "eta_auto_range",
              "primitives_member", "tp_max_steps", "tp_init_episodes", "tp_prox_updates", "tp_ppo_epochs", "tp_buffer_size")
 

@@ -24,6 +24,7 @@ from ccp_jax.train import Args, config_from_args
     (dict(seeds=(1, 1)), "seeds"),
     (dict(tanh_log_prob="torch"), "tanh_log_prob"),
     (dict(network_init="torch"), "network_init"),
+    (dict(coop_scale="reward"), "coop_scale"),
     (dict(train_cycles_per_epoch=3), "train_cycles_per_epoch"),  # tiny: 100 vectorised steps, 20 loops
     (dict(target_entropy=float("nan")), "target_entropy"),
     (dict(initial_alpha=0.0), "initial_alpha"),

@@ -119,6 +119,21 @@ def test_eta_one_is_plain_sac_on_normalised_own_critic_only(csac):
     assert _changed(new_a.actor, new_c.actor, 0)
 
 
+@pytest.mark.parametrize("normaliser", ["batch", "floor"])
+def test_own_scale_eta_one_is_naive_for_the_first_agent(normaliser):
+    """--coop-scale own: C_n in Q_n's units, so at η = 1 agent 0's whole update (actor, critic, α) is Naive's."""
+    _, _, agents, batch, naive_update = _setup("naive")
+    config, nets, _, _, paper_update = _setup("csac")
+    own = config.replace(coop_scale="own", normaliser=normaliser, norm_floor=1e-3)
+    own_update = jax.jit(make_learner(own, nets, ACT).update)
+    args = (agents, batch, jnp.array([1.0, 1.0]), jnp.array([True, True]), jax.random.PRNGKey(5))
+    naive, mine, paper = naive_update(*args)[0], own_update(*args)[0], paper_update(*args)[0]
+    for part in ("actor", "critic", "log_alpha"):
+        for a, b in zip(jax.tree.leaves(getattr(naive, part)), jax.tree.leaves(getattr(mine, part))):
+            np.testing.assert_allclose(a[0], b[0], rtol=1e-5, atol=1e-7, err_msg=part)
+    assert _changed(naive.actor, paper.actor, 0)  # the paper's units weigh α log π against Q̂ ∈ [0, 1] instead
+
+
 def _setup_norm(normaliser, flatness=1.0, eta=0.5):
     config, nets, agents, batch, _ = _setup("csac")
     config = config.replace(normaliser=normaliser, norm_floor=1.0, norm_ema_rate=0.1)

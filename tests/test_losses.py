@@ -46,6 +46,15 @@ def test_coop_actor_loss_extremes_and_mixture():
     assert float(other) == pytest.approx(float(own), abs=1e-6)
 
 
+def test_coop_actor_loss_in_own_units_is_the_objective_times_the_scale_held_constant():
+    logp, q_hat_own, q_hat_next = jnp.array([-1.0, 0.5]), jnp.array([0.0, 1.0]), jnp.array([1.0, 0.5])
+    loss = losses.coop_actor_loss(logp, q_hat_own, q_hat_next, 0.3, 0.2, units=10.0)
+    # C = [0.7, 0.65] · 10; α log π = [-0.2, 0.1]
+    assert float(loss) == pytest.approx(np.mean([-0.2 - 7.0, 0.1 - 6.5]), abs=1e-5)
+    grad = jax.grad(lambda u: losses.coop_actor_loss(logp, q_hat_own, q_hat_next, 0.3, 0.2, units=u))(10.0)
+    assert float(grad) == 0.0  # a constant, as the normaliser's bounds are
+
+
 def test_plain_sac_actor_loss():
     logp, q = jnp.array([-1.0, 0.5]), jnp.array([3.0, 1.0])
     assert float(losses.sac_actor_loss(logp, q, 0.5)) == pytest.approx(np.mean([-0.5 - 3.0, 0.25 - 1.0]))
