@@ -289,7 +289,7 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
         def weighted(a):
             q_hat, eta_used, _, diag = normalised(pair(critic_min(slots, slot_data(batch.obs), slot_data(a))), eta,
                                                   agents.norm, jnp.zeros((n_agents,), bool))
-            units = jax.lax.stop_gradient(coop_units(diag))[:, None]
+            units = coop_units(diag)[:, None]  # from the normaliser's bounds: already constants
             return (units * eta_used[:, None] * q_hat[:, 0],
                     units * jnp.where(has_next[:, None], 1 - eta_used[:, None], 0.0) * q_hat[:, 1])
 
