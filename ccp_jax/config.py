@@ -16,8 +16,8 @@ import numpy as np
 ALGOS = ("csac", "naive", "sac", "tp")
 Algo = Literal["csac", "naive", "sac", "tp"]
 PresetName = Literal["paper", "small", "tiny"]
-Normaliser = Literal["batch", "ema", "floor"]
-NORMALISERS = ("batch", "ema", "floor")
+Normaliser = Literal["batch", "ema", "floor", "none"]
+NORMALISERS = ("batch", "ema", "floor", "none")
 NextAction = Literal["own", "acting"]
 NEXT_ACTIONS = ("own", "acting")
 TanhLogProb = Literal["rlkit", "exact"]
@@ -103,7 +103,8 @@ class Config:
     # The tanh correction of log π (`networks.sample_action`): RLkit's capped form or the exact one.
     tanh_log_prob: TanhLogProb = "exact"
     # How Q̂ is scaled: "batch" (the paper: batch min/max), "ema" (running min/max),
-    # "floor" (batch min, range at least `norm_floor`, in reward units).
+    # "floor" (batch min, range at least `norm_floor`, in reward units), "none" (Q̂ = Q: C_n is then the soft
+    # value of the cooperative reward η r_n + (1 − η) r_{n+1} under π_n, in reward units, whatever `coop_scale`).
     normaliser: Normaliser = "batch"
     norm_ema_rate: float = 0.005
     norm_floor: float = 1.0

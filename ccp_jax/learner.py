@@ -167,6 +167,8 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
             lo, scale = e_lo, e_hi - e_lo
         elif config.normaliser == "floor":
             lo, scale = b_lo, jnp.maximum(b_hi - b_lo, config.norm_floor)
+        elif config.normaliser == "none":
+            lo, scale = jnp.zeros_like(b_lo), jnp.ones_like(b_hi)
         else:
             lo, scale = b_lo, b_hi - b_lo
         q_hat = losses.normalise(q_pair, config.norm_eps, lo[..., None], scale[..., None])

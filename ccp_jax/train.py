@@ -100,7 +100,7 @@ class Args:
     eta_auto_range: Optional[tuple[float, float]] = None
     """--eta auto: the interval η* is clipped to (default 0.05 0.95)."""
     normaliser: Optional[Normaliser] = None
-    """How critics are scaled in the actor loss: batch (the paper's, default), ema (running min/max), floor."""
+    """How critics are scaled in the actor loss: batch (the paper's, default), ema (running min/max), floor, none (raw Q: C_n is the value of the cooperative reward η r_n + (1 − η) r_{n+1})."""
     norm_floor: Optional[float] = None
     """Smallest range the floor normaliser divides by, in reward units (default 1)."""
     norm_ema_rate: Optional[float] = None

@@ -6,7 +6,7 @@
 
 Table I's CSAC grid (`table1.py`, same scale and folder) already holds the
 swept ratios and `auto` with the paper's batch normaliser, all on the same
-seeds. This script adds CSAC `auto` with the `ema` and the `floor`
+seeds. This script adds CSAC `auto` with the `ema`, `floor` and `none`
 normalisers (one grid call each, same seeds, written beside them as
 <domain>/csac_auto_<normaliser>/), then writes eta_auto.md: per domain, final
 success and env steps to the first evaluation success of every variant, next
@@ -31,14 +31,14 @@ from common import (DOMAINS, SCALES, Scale, ScaleName, best_swept_eta, eta_label
                     merged_summary, read_json, results_folder, run_grid, swept_runs, write_text)
 from table1 import run_dir, train_domain
 
-NORMALISERS = ("ema", "floor")
+NORMALISERS = ("ema", "floor", "none")
 
 
 @dataclasses.dataclass
 class Args:
     scale: ScaleName = "cpu"
     domains: tuple[str, ...] = ("maze2", "maze3", "maze4", "peg")
-    normalisers: tuple[Literal["ema", "floor"], ...] = NORMALISERS
+    normalisers: tuple[Literal["ema", "floor", "none"], ...] = NORMALISERS
     """The auto variants to train beside the swept ratios."""
     out: Optional[Path] = None
     """Results folder shared with table1.py (default experiments/results/table1_<scale>)."""
@@ -81,7 +81,7 @@ def train_fresh(scale: Scale, out: Path, domain: str, seeds: int) -> None:
 
 
 def domain_rows(out: Path, domain: str) -> list[str]:
-    """Markdown rows: the best swept ratio, auto (batch), auto (ema), auto (floor), then both on fresh seeds."""
+    """Markdown rows: the best swept ratio, auto (batch), auto with each other normaliser, then both on fresh seeds."""
     swept = merged_summary(swept_runs(out, domain))
     if swept is None:
         return []
@@ -96,7 +96,8 @@ def domain_rows(out: Path, domain: str) -> list[str]:
         path = run_dir(out, domain, f"csac_auto_{normaliser}") / "summary.json"
         if path.exists():
             s = read_json(path)
-            rows.append((f"auto, {normaliser} normaliser", *next(zip(final_success(s).values(), firsts(s).values()))))
+            label = "auto, no normaliser" if normaliser == "none" else f"auto, {normaliser} normaliser"
+            rows.append((label, *next(zip(final_success(s).values(), firsts(s).values()))))
     path = run_dir(out, domain, FRESH) / "summary.json"
     if path.exists():
         s = read_json(path)

@@ -180,7 +180,24 @@ def test_running_bounds_and_auto_eta_against_hand_values():
     assert float(metrics.eta_used[1]) == 1.0
 
 
-@pytest.mark.parametrize("normaliser, shrinks", [("batch", False), ("ema", True), ("floor", True)])
+@pytest.mark.parametrize("coop_scale", ["unit", "own"])
+def test_no_normaliser_is_the_sac_actor_loss_on_the_cooperative_reward(coop_scale):
+    """--normaliser none: agent 0 minimises mean(α_0 log π − η Q_0 − (1 − η) Q_1) on raw critics, in either units."""
+    config, nets, agents, batch, _, eta = _setup_norm("none", eta=0.3)
+    learner = make_learner(config.replace(coop_scale=coop_scale), nets, ACT)
+    key = jax.random.PRNGKey(7)
+    _, metrics = jax.jit(learner.update)(agents, batch, eta, jnp.array([True, True]), key)
+    b0 = jax.tree.map(lambda x: x[0], batch)
+    mean, log_std = nets.actor.apply(_agent(agents.actor, 0), b0.obs)
+    act, logp = sample_action(mean, log_std, jax.random.split(key, (2, 2))[0, 1], config.tanh_log_prob)
+    q = [jnp.min(nets.critic.apply(_agent(agents.critic, j), b0.obs, act), 0) for j in (0, 1)]
+    alpha = float(jnp.exp(agents.log_alpha[0]))
+    hand = float(jnp.mean(alpha * logp - 0.3 * q[0] - 0.7 * q[1]))
+    assert float(metrics.pi_loss[0]) == pytest.approx(hand, rel=1e-5)
+    assert float(metrics.range_own[0]) == float(metrics.range_next[0]) == 1.0  # nothing divided
+
+
+@pytest.mark.parametrize("normaliser, shrinks", [("batch", False), ("ema", True), ("floor", True), ("none", True)])
 def test_flat_next_critic_pull(normaliser, shrinks):
     """As the next critic flattens 10^4-fold, its pull on the actions should shrink with it;
     the paper's batch normaliser instead rescales the remaining noise to full size."""
