@@ -10,6 +10,7 @@ import pytest
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
 
 import common  # noqa: E402
+import compare  # noqa: E402
 import curves  # noqa: E402
 import independent_ratios  # noqa: E402
 import long_budget  # noqa: E402
@@ -316,3 +317,26 @@ def test_long_budget_trains_its_grids_then_tables_success_at_milestones_and_per_
     assert "| CSAC η = 0.1 | 0.33 ± 0.33 | 0.67 0.00 | 400 never | 0.67 (0.33) 0.00 (1.00) |" in lines
     assert "| auto, floor normaliser | 0.67 ± 0.33 | 0.33 1.00 | 600 200 | 0.33 (0.67) 1.00 (0.00) |" in lines
     assert (tmp_path / "success.png").stat().st_size > 0 and (tmp_path / "table.md").read_text().splitlines() == lines
+
+
+def test_compare_pools_folders_per_variant_and_tests_each_row_against_the_first(tmp_path):
+    scale = common.SCALES["smoke"]
+    steps = scale.config("maze2", "csac").steps_per_epoch
+    a = scale.config("maze2", "csac", etas=[(0.1,)], seeds=2)
+    _fake_run(tmp_path / "a", a, {0: [0, 1, 1], 1: [1, 1, 1]})
+    _fake_run(tmp_path / "a2", scale.config("maze2", "csac", etas=[(0.1,)], seeds=2, first_seed=2),
+              {0: [0, 0, 1], 1: [0, 1, 1]})
+    b = scale.config("maze2", "csac", etas=[(0.1,), (0.9,)], seeds=2, normaliser="floor")
+    _fake_run(tmp_path / "b", b, {0: [0, 0, 0], 1: [0, 0, 0], 2: [0, 0, 1], 3: [0, 0, 0]})
+    text = compare.main(compare.Args(variants=(f"A={tmp_path / 'a'},{tmp_path / 'a2'}", f"B={tmp_path / 'b'}"),
+                                     at=(steps, 3 * steps), out=tmp_path / "t.md"))
+    lines = text.splitlines()
+    # A pools seeds 0-3: successes at epoch 1 (0 1 0 0) and 3 (1 1 1 1); finals 2/3, 1, 1/3, 2/3.
+    assert lines[2] == "| A | 4 | 0.25 / 1.00 | 0.67 ± 0.24 | 3 of 4 |  |"
+    assert lines[3].startswith("| B, csac η=0.1 | 2 | 0.00 / 0.00 | 0.00 ± 0.00 | 0 of 2 | 0.")
+    assert lines[4].startswith("| B, csac η=0.9 | 2 | 0.00 / 0.50 | 0.17 ± 0.17 | 0 of 2 | 0.")
+    assert "A: 0.67 1.00 0.33 0.67" in lines[-1] and (tmp_path / "t.md").read_text() == text
+    with pytest.raises(SystemExit, match="^error: variants: expected LABEL=DIR"):
+        compare.main(compare.Args(variants=(str(tmp_path / "a"),)))
+    with pytest.raises(SystemExit, match="holds no finished run"):
+        compare.main(compare.Args(variants=(f"C={tmp_path / 'missing'}",)))
