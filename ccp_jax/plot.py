@@ -241,8 +241,12 @@ def main(argv: Optional[Sequence[str]] = None) -> Path:
     try:
         if args.labels:  # folders given the same label pool their seeds
             by_label = {label: [d for d, l in zip(args.run_dirs, args.labels) if l == label] for label in args.labels}
-            groups = {(task, label, eta): series for label, dirs in by_label.items()
-                      for (task, _, eta), series in load_curves(dirs, args.metric).items()}
+            groups = {}
+            for label, dirs in by_label.items():
+                found = load_curves(dirs, args.metric)
+                for group, series in found.items():  # a label over several ratios keeps them apart
+                    name = label if len(found) == 1 else f"{label}, {group_label(group)}"
+                    groups[group[0], name, group[2]] = series
         else:
             groups = load_curves(args.run_dirs, args.metric)
     except (FileNotFoundError, KeyError, ValueError) as err:

@@ -98,6 +98,23 @@ def test_plot_labels_pool_the_seeds_of_folders_with_one_label(run_dir, tmp_path,
     assert {g[1]: len(series) for g, series in drawn.items()} == {"pooled": 2, "whole": 2}
 
 
+def test_a_label_over_several_ratios_names_each(run_dir, tmp_path, monkeypatch):
+    import shutil
+
+    mixed = tmp_path / "mixed"
+    shutil.copytree(run_dir, mixed)
+    rows = [json.loads(r) for r in (mixed / "metrics.jsonl").read_text().splitlines()]
+    for r in rows:  # seed 1 becomes a second ratio's member
+        r["eta"] = [0.5, 1.0] if r["seed"] == 1 else r["eta"]
+    (mixed / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    drawn = {}
+    real = plot.curves
+    monkeypatch.setattr(plot, "curves", lambda groups, *a, **k: drawn.update(groups) or real(groups, *a, **k))
+    plot.main([str(mixed), str(run_dir), "--labels", "variant", "other", "--out", str(tmp_path / "m.png")])
+    assert {g[1]: len(series) for g, series in drawn.items()} == {
+        "variant, csac η=0.1": 1, "variant, csac η=0.5": 1, "other": 2}
+
+
 def test_load_curves_groups_members_by_algo_and_eta(run_dir, config):
     groups = plot.load_curves([run_dir, run_dir])  # the same run twice: each (group, seed) counts once
     (group, series), = groups.items()
