@@ -106,7 +106,7 @@ def _steps_label(x: float, _) -> str:
     return f"{x / 1e6:g}M" if x >= 1e6 else f"{x / 1e3:g}k" if x >= 1e3 else f"{x:g}"
 
 
-def _group_order(group: Group) -> tuple:
+def group_order(group: Group) -> tuple:
     """Sort key: task, algo, then numeric ratios before "auto"."""
     task, algo, eta = group
     return task, algo, [(1, 0.0) if isinstance(x, str) else (0, x) for x in eta]
@@ -145,7 +145,7 @@ def curves(groups: dict[Group, list[Series]], metric: str = "success_rate",
         ax = new_figure().add_subplot()
     show_task = len({g[0] for g in groups}) > 1
     fraction = metric == "success_rate" or metric.startswith("stage_fraction")  # fractions of episodes
-    for group in sorted(groups, key=_group_order):
+    for group in sorted(groups, key=group_order):
         steps, mean, std, count = mean_std(groups[group])
         line, = ax.plot(steps, mean, label=f"{group_label(group, show_task)} (n={count.max(initial=0)})")
         low, high = (np.clip(mean - std, 0, 1), np.clip(mean + std, 0, 1)) if fraction else (mean - std, mean + std)

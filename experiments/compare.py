@@ -66,7 +66,7 @@ def variant_rows(label: str, folders: list[Path], at: tuple[int, ...]) -> list[R
         for m in read_json(folder / "summary.json")["members"]:
             summaries.setdefault((m["algo"], tuple(m["eta"]), m["seed"]), m)  # first folder wins, as load_curves
     rows = []
-    for group in sorted(groups, key=plot._group_order):
+    for group in sorted(groups, key=plot.group_order):
         members = sorted((m for k, m in summaries.items() if k[:2] == group[1:]), key=lambda m: m["seed"])
         name = label if len(groups) == 1 else f"{label}, {plot.group_label(group)}"
         means = []
