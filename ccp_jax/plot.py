@@ -101,6 +101,11 @@ def group_label(group: Group, show_task: bool = False) -> str:
     return f"{task} {label}" if show_task else label
 
 
+def variant_label(label: str, group: Group, groups: dict[Group, list[Series]]) -> str:
+    """A user's name for a set of run folders; with the group's algo and ratio when those folders hold several."""
+    return label if len(groups) == 1 else f"{label}, {group_label(group)}"
+
+
 def _steps_label(x: float, _) -> str:
     """Axis ticks of env steps: 150k, 3M."""
     return f"{x / 1e6:g}M" if x >= 1e6 else f"{x / 1e3:g}k" if x >= 1e3 else f"{x:g}"
@@ -245,8 +250,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Path:
             for label, dirs in by_label.items():
                 found = load_curves(dirs, args.metric)
                 for group, series in found.items():  # a label over several ratios keeps them apart
-                    name = label if len(found) == 1 else f"{label}, {group_label(group)}"
-                    groups[group[0], name, group[2]] = series
+                    groups[group[0], variant_label(label, group, found), group[2]] = series
         else:
             groups = load_curves(args.run_dirs, args.metric)
     except (FileNotFoundError, KeyError, ValueError) as err:

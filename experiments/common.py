@@ -215,6 +215,11 @@ def final_success(summary: dict) -> dict[tuple, list[float]]:
     return by_eta
 
 
+def success_at(series: Sequence[tuple[np.ndarray, np.ndarray]], steps: int) -> list[float]:
+    """The value each member logged at env step `steps` (members that had not reached it are left out)."""
+    return [float(v[np.searchsorted(s, steps)]) for s, v in series if steps in s]
+
+
 def mean_std(values: Sequence[float]) -> str:
     """'0.67 ± 0.47' (population std over seeds), or '–' for no values."""
     if not values:

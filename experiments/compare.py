@@ -23,7 +23,7 @@ import tyro
 from scipy import stats
 
 from ccp_jax import plot
-from common import read_json, write_text
+from common import mean_std, merged_summary, success_at, write_text
 
 
 @dataclasses.dataclass
@@ -43,7 +43,6 @@ class Row:
     label: str
     finals: np.ndarray  # float64[seeds], in seed order
     at: np.ndarray  # float64[len(Args.at)]: mean over seeds; NaN where a seed had not reached that step
-    firsts: list  # env steps of each seed's first evaluation success (None: never)
 
 
 def parse_variant(text: str) -> tuple[str, list[Path]]:
@@ -61,20 +60,13 @@ def parse_variant(text: str) -> tuple[str, list[Path]]:
 def variant_rows(label: str, folders: list[Path], at: tuple[int, ...]) -> list[Row]:
     """One row per (algo, ratio) group of the pooled folders."""
     groups = plot.load_curves(folders)
-    summaries = {}
-    for folder in folders:
-        for m in read_json(folder / "summary.json")["members"]:
-            summaries.setdefault((m["algo"], tuple(m["eta"]), m["seed"]), m)  # first folder wins, as load_curves
+    members = merged_summary(folders)["members"]
     rows = []
     for group in sorted(groups, key=plot.group_order):
-        members = sorted((m for k, m in summaries.items() if k[:2] == group[1:]), key=lambda m: m["seed"])
-        name = label if len(groups) == 1 else f"{label}, {plot.group_label(group)}"
-        means = []
-        for step in at:
-            values = [v[s == step] for s, v in groups[group]]
-            means.append(np.mean([x[0] for x in values]) if all(len(x) for x in values) else np.nan)
-        rows.append(Row(name, np.array([m["final_success"] for m in members]), np.array(means),
-                        [m["first_success_env_steps"] for m in members]))
+        finals = [m["final_success"] for m in sorted(members, key=lambda m: m["seed"]) if tuple(m["eta"]) == group[2]]
+        series = groups[group]
+        means = [np.mean(v) if len(v := success_at(series, step)) == len(series) else np.nan for step in at]
+        rows.append(Row(plot.variant_label(label, group, groups), np.array(finals), np.array(means)))
     return rows
 
 
@@ -85,8 +77,8 @@ def table(rows: list[Row], at: tuple[int, ...], solved: float) -> str:
     for i, row in enumerate(rows):
         p = "" if i == 0 else f"{stats.mannwhitneyu(row.finals, rows[0].finals, alternative='two-sided').pvalue:.3f}"
         milestones = " / ".join("–" if np.isnan(v) else f"{v:.2f}" for v in row.at)
-        lines.append(f"| {row.label} | {len(row.finals)} | {milestones} | {row.finals.mean():.2f} ± "
-                     f"{row.finals.std():.2f} | {int((row.finals >= solved).sum())} of {len(row.finals)} | {p} |")
+        lines.append(f"| {row.label} | {len(row.finals)} | {milestones} | {mean_std(list(row.finals))} "
+                     f"| {int((row.finals >= solved).sum())} of {len(row.finals)} | {p} |")
     lines.append("")
     lines.append("Final success per seed: " + "; ".join(
         f"{row.label}: {' '.join(f'{v:.2f}' for v in row.finals)}" for row in rows))

@@ -23,7 +23,7 @@ import tyro
 
 from ccp_jax import plot
 from ccp_jax.config import AUTO
-from common import SCALES, ScaleName, final_ends, fmt, mean_std, read_json, run_grid, write_text
+from common import SCALES, ScaleName, final_ends, fmt, mean_std, read_json, run_grid, success_at, write_text
 
 # Run folder -> (ratio grid, config changes); each holds seeds 0..seeds-1. η = 0.5 is the `cpu` scale's best
 # swept 2-room ratio (Table I at 150 k), η = 0.1 the paper's.
@@ -82,7 +82,7 @@ def milestone_table(found: dict[str, dict], milestones: tuple[int, ...]) -> list
     for steps in milestones:
         cells = []
         for v in found.values():
-            at = [s[1][np.searchsorted(s[0], steps)] for s in v["curves"] if steps in s[0]]
+            at = success_at(v["curves"], steps)
             cells.append(f"{np.mean(at):.2f} ({len(at)})" if at else "–")
         lines.append(f"| {steps:,} | {prototype(steps)} | " + " | ".join(cells) + " |")
     return lines
