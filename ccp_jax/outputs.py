@@ -114,8 +114,9 @@ def write_rows(path: Path, rows: Iterable[dict]) -> None:
 
 
 def read_rows(path: Path) -> list[dict]:
-    with path.open() as f:
-        return [json.loads(line) for line in f if line.strip()]
+    """The rows of a jsonl file; a last line without its newline is a row still being written and is left out."""
+    lines = Path(path).read_text().split("\n")[:-1]
+    return [json.loads(line) for line in lines if line.strip()]
 
 
 def summarise(config: Config, rows: list[dict], wall_s: float | None = None) -> dict:

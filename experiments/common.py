@@ -151,14 +151,18 @@ def swept_runs(out: Path, domain: str) -> list[Path]:
     return [f for f in folders if (f / "summary.json").exists()]
 
 
-def merged_summary(folders: Sequence[Path]) -> Optional[dict]:
+def merged_summary(folders: Sequence[Path], in_progress: bool = False) -> Optional[dict]:
     """The members of several runs' summary.json as one summary (None for no folder).
 
     An (eta vector, seed) found in several runs counts once, from the first folder
     listed; each member carries its run's folder (`run`) and that run's `wall_s`.
     Runs whose settings differ beyond grid and budget are different experiments: a
     member in two of them raises ValueError naming the fields (as `plot.load_curves`).
+    With `in_progress`, a folder without summary.json (a run still training) is
+    summarised from its metrics.jsonl so far, as the trainer will summarise it
+    (`wall_s` None; final success = the mean of the last evaluations logged).
     """
+    from ccp_jax import outputs
     from ccp_jax.config import Config
     from ccp_jax.plot import refuse_to_pool
 
@@ -166,8 +170,11 @@ def merged_summary(folders: Sequence[Path]) -> Optional[dict]:
         return None
     seen, members = {}, []
     for folder in folders:
-        summary = read_json(Path(folder) / "summary.json")
         settings = Config.from_dict(read_json(Path(folder) / "config.json"))
+        if in_progress and not (Path(folder) / "summary.json").exists():
+            summary = outputs.summarise(settings, outputs.read_rows(Path(folder) / "metrics.jsonl"))
+        else:
+            summary = read_json(Path(folder) / "summary.json")
         for m in summary["members"]:
             key = (tuple(m["eta"]), m["seed"])
             if key in seen:

@@ -11,6 +11,10 @@ Every row is compared with the first by a two-sided Mann–Whitney U test on the
 per-seed final success (the mean of a run's last evaluations, as summary.json
 defines it): seeds are the unit of evidence, and the finals are far from
 normal (most seeds end at 0 or 1).
+
+A folder without summary.json is a run still training: its rows use the
+evaluations logged so far (final = the mean of its last ones), and a line under
+the table says how far it got, so a long grid can be watched as it trains.
 """
 from __future__ import annotations
 
@@ -23,7 +27,8 @@ import tyro
 from scipy import stats
 
 from ccp_jax import plot
-from common import mean_std, merged_summary, success_at, write_text
+from ccp_jax import outputs
+from common import mean_std, merged_summary, read_json, success_at, write_text
 
 
 @dataclasses.dataclass
@@ -52,15 +57,23 @@ def parse_variant(text: str) -> tuple[str, list[Path]]:
         raise SystemExit(f"error: variants: expected LABEL=DIR[,DIR...], got {text!r}")
     folders = [Path(d) for d in dirs.split(",")]
     for folder in folders:
-        if not (folder / "summary.json").exists():
-            raise SystemExit(f"error: variants: {folder} holds no finished run (summary.json)")
+        if not ((folder / "config.json").exists() and (folder / "metrics.jsonl").exists()):
+            raise SystemExit(f"error: variants: {folder} holds no run (config.json and metrics.jsonl)")
     return label, folders
+
+
+def progress(folder: Path) -> Optional[str]:
+    """'DIR: 60,000 of 200,000 env steps' for a run still training (no summary.json), else None."""
+    if (folder / "summary.json").exists():
+        return None
+    done = max((r["env_steps"] for r in outputs.read_rows(folder / "metrics.jsonl")), default=0)
+    return f"{folder}: {done:,} of {read_json(folder / 'config.json')['total_steps']:,} env steps"
 
 
 def variant_rows(label: str, folders: list[Path], at: tuple[int, ...]) -> list[Row]:
     """One row per (algo, ratio) group of the pooled folders."""
     groups = plot.load_curves(folders)
-    members = merged_summary(folders)["members"]
+    members = merged_summary(folders, in_progress=True)["members"]
     rows = []
     for group in sorted(groups, key=plot.group_order):
         finals = [m["final_success"] for m in sorted(members, key=lambda m: m["seed"]) if tuple(m["eta"]) == group[2]]
@@ -86,8 +99,12 @@ def table(rows: list[Row], at: tuple[int, ...], solved: float) -> str:
 
 
 def main(args: Args) -> str:
-    rows = [row for text in args.variants for row in variant_rows(*parse_variant(text), args.at)]
+    variants = [parse_variant(text) for text in args.variants]
+    rows = [row for label, folders in variants for row in variant_rows(label, folders, args.at)]
     text = table(rows, args.at, args.solved)
+    running = [line for _, folders in variants for folder in folders if (line := progress(folder))]
+    if running:
+        text += "\nStill training (finals so far: the mean of the last evaluations logged): " + "; ".join(running) + "\n"
     if args.out:
         write_text(args.out, text)
     print(text)
