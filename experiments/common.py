@@ -14,9 +14,10 @@ import math
 import shutil
 import time
 from pathlib import Path
-from typing import Literal, Optional, Sequence
+from typing import Any, Callable, Literal, Optional, Sequence
 
 import numpy as np
+import tyro
 
 from ccp_jax import checkpoint
 from ccp_jax.config import AUTO, Config, ConfigError, make_config
@@ -249,3 +250,12 @@ def read_json(path: Path) -> dict:
 def write_text(path: Path, text: str) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(text)
+
+
+def cli(main: Callable[[Any], Any], args_type: type, errors: tuple[type[Exception], ...] = (ConfigError,)) -> None:
+    """Runs a script's `main` on its parsed command line; bad input (`errors`) ends in one line naming the
+    field (`error: seeds: ...`), not a traceback, as `python -m ccp_jax.train` does."""
+    try:
+        main(tyro.cli(args_type))
+    except errors as err:
+        raise SystemExit(f"error: {err}") from None

@@ -28,7 +28,7 @@ from scipy import stats
 
 from ccp_jax import plot
 from ccp_jax import outputs
-from common import mean_std, merged_summary, read_json, success_at, write_text
+from common import cli, mean_std, merged_summary, read_json, success_at, write_text
 
 
 @dataclasses.dataclass
@@ -112,4 +112,4 @@ def main(args: Args) -> str:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    cli(main, Args, errors=(ValueError,))  # a folder pair that must not pool, too

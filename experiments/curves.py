@@ -14,11 +14,10 @@ import dataclasses
 from pathlib import Path
 from typing import Optional
 
-import tyro
 
 from ccp_jax import plot
 from ccp_jax.config import AUTO
-from common import ScaleName, best_swept_eta, merged_summary, results_folder
+from common import ScaleName, best_swept_eta, cli, merged_summary, results_folder
 from table1 import finished_runs, train_domain
 
 TITLES = {"maze2": "2-room maze", "maze3": "3-room maze", "maze4": "4-room maze", "peg": "peg in hole",
@@ -89,4 +88,4 @@ def main(args: Args) -> list[Path]:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    cli(main, Args)

@@ -24,10 +24,9 @@ from pathlib import Path
 from typing import Literal, Optional
 
 import numpy as np
-import tyro
 
 from ccp_jax.config import AUTO
-from common import (DOMAINS, SCALES, Scale, ScaleName, best_swept_eta, eta_label, final_success, mean_std,
+from common import (DOMAINS, SCALES, Scale, ScaleName, best_swept_eta, cli, eta_label, final_success, mean_std,
                     merged_summary, read_json, results_folder, run_grid, swept_runs, write_text)
 from table1 import run_dir, train_domain
 
@@ -141,4 +140,4 @@ def main(args: Args) -> str:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    cli(main, Args)

@@ -19,11 +19,10 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 import numpy as np
-import tyro
 
 from ccp_jax import plot
 from ccp_jax.config import AUTO, ConfigError, parse_eta_vector
-from common import (PAPER_INDEPENDENT, SCALES, ScaleName, best_swept_eta, final_success, fmt, mean_std,
+from common import (PAPER_INDEPENDENT, SCALES, ScaleName, best_swept_eta, cli, final_success, fmt, mean_std,
                     merged_summary, read_json, results_folder, run_grid, swept_runs, write_text)
 
 # Ratio values per axis: the paper's figure spans 0.1 … 1.0; the CPU budget affords three.
@@ -127,7 +126,4 @@ def main(args: Args) -> str:
 
 
 if __name__ == "__main__":
-    try:
-        main(tyro.cli(Args))
-    except ConfigError as err:  # bad input: one line naming the field
-        raise SystemExit(f"error: {err}") from None
+    cli(main, Args)

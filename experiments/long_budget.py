@@ -19,11 +19,10 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
-import tyro
 
 from ccp_jax import plot
 from ccp_jax.config import AUTO
-from common import SCALES, ScaleName, final_ends, fmt, mean_std, read_json, run_grid, success_at, write_text
+from common import SCALES, ScaleName, cli, final_ends, fmt, mean_std, read_json, run_grid, success_at, write_text
 
 # Run folder -> (ratio grid, config changes); each holds seeds 0..seeds-1. η = 0.5 is the `cpu` scale's best
 # swept 2-room ratio (Table I at 150 k), η = 0.1 the paper's.
@@ -133,4 +132,4 @@ def main(args: Args) -> str:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    cli(main, Args)

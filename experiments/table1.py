@@ -26,10 +26,9 @@ from pathlib import Path
 from typing import Literal, Optional
 
 import numpy as np
-import tyro
 
-from ccp_jax.config import AUTO, ConfigError, parse_eta
-from common import (DOMAINS, PAPER_TABLE1, SCALES, ScaleName, eta_label, final_ends, final_success, fmt, mean_std,
+from ccp_jax.config import AUTO, parse_eta
+from common import (DOMAINS, PAPER_TABLE1, SCALES, ScaleName, cli, eta_label, final_ends, final_success, fmt, mean_std,
                     merged_summary, read_json, results_folder, run_grid, swept_folder, swept_runs, write_text)
 
 ALGOS = ("csac", "sac", "naive", "tp")
@@ -220,7 +219,4 @@ def main(args: Args) -> str:
 
 
 if __name__ == "__main__":
-    try:
-        main(tyro.cli(Args))
-    except ConfigError as err:  # bad input: one line naming the field
-        raise SystemExit(f"error: {err}") from None
+    cli(main, Args)

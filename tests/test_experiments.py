@@ -1,6 +1,7 @@
 """The experiment scripts' bookkeeping on hand-made run folders: tables, best ratio, resume rules, figures."""
 import dataclasses
 import json
+import subprocess
 import sys
 from pathlib import Path
 
@@ -355,3 +356,24 @@ def test_compare_reads_a_run_still_training_from_its_metrics_so_far(tmp_path):
     lines = text.splitlines()
     assert lines[2] == "| R | 2 | 0.00 / 1.00 / – | 0.50 ± 0.17 | 1 of 2 |  |"  # finals 2/3 and 1/3
     assert lines[-1].endswith(f"{tmp_path / 'r'}: {3 * steps:,} of {10 * steps:,} env steps")
+
+
+def test_scripts_end_bad_input_in_one_line_naming_the_field(tmp_path, monkeypatch, capsys):
+    """common.cli turns the script's bad-input errors into `error: FIELD: ...` (no traceback); others propagate."""
+    def bad(args):
+        raise ConfigError("seeds", "at least one seed")
+
+    monkeypatch.setattr(sys, "argv", ["table1.py"])
+    with pytest.raises(SystemExit, match="^error: seeds: at least one seed$"):
+        common.cli(bad, table1.Args)
+    with pytest.raises(ZeroDivisionError):
+        common.cli(lambda args: 1 / 0, table1.Args)
+    # End to end: compare.py asked to pool two different experiments names the differing field.
+    scale = common.SCALES["smoke"]
+    _fake_run(tmp_path / "a", scale.config("maze2", "csac"), {0: [0], 1: [1]})
+    _fake_run(tmp_path / "b", scale.config("maze2", "csac", normaliser="floor"), {0: [1], 1: [1]})
+    script = Path(__file__).resolve().parents[1] / "experiments" / "compare.py"
+    done = subprocess.run([sys.executable, str(script), f"X={tmp_path / 'a'},{tmp_path / 'b'}"],
+                          capture_output=True, text=True)
+    assert done.returncode == 1 and "Traceback" not in done.stderr
+    assert done.stderr.startswith("error: ") and "differ in normaliser" in done.stderr
