@@ -337,6 +337,17 @@ def test_compare_pools_folders_per_variant_and_tests_each_row_against_the_first(
     assert lines[3].startswith("| B, csac η=0.1 | 2 | 0.00 / 0.00 | 0.00 ± 0.00 | 0 of 2 | 0.")
     assert lines[4].startswith("| B, csac η=0.9 | 2 | 0.00 / 0.50 | 0.17 ± 0.17 | 0 of 2 | 0.")
     assert "A: 0.67 1.00 0.33 0.67" in lines[-1] and (tmp_path / "t.md").read_text() == text
+    # Chance that 2 seeds reach 0.5 at epoch 1 and 1.0 at epoch 3: the 3 of A's 6 pairs that hold seed 1;
+    # B has 2 seeds, so 1 pair per ratio: (0, 0) at epoch 1 misses.
+    text = compare.main(compare.Args(variants=(f"A={tmp_path / 'a'},{tmp_path / 'a2'}", f"B={tmp_path / 'b'}"),
+                                     at=(steps, 3 * steps), reference=(0.5, 1.0), draw=2))
+    lines = text.splitlines()
+    assert lines[0].endswith("| 2 seeds reach 0.5 / 1 |") and lines[1] == "|---" * 7 + "|"
+    assert lines[2].endswith("| 3 of 4 |  | 0.500 |") and lines[3].endswith(" 0.000 |")
+    text = compare.main(compare.Args(variants=(f"A={tmp_path / 'a'}",), at=(steps, 3 * steps), reference=(0, 0), draw=3))
+    assert text.splitlines()[2].endswith("| – |")  # 2 seeds cannot make a 3-seed study
+    with pytest.raises(SystemExit, match="^error: reference: one value per --at step"):
+        compare.Args(variants=("A=x",), at=(steps,), reference=(0.1, 0.2))
     with pytest.raises(SystemExit, match="^error: variants: expected LABEL=DIR"):
         compare.main(compare.Args(variants=(str(tmp_path / "a"),)))
     with pytest.raises(SystemExit, match="holds no run"):
