@@ -1,5 +1,4 @@
 """The Colab notebooks run top to bottom at tiny scale."""
-import os
 from pathlib import Path
 
 import nbformat

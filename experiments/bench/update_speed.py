@@ -19,7 +19,6 @@ import jax
 import jax.numpy as jnp
 import tyro
 
-from ccp_jax import buffer as replay
 from ccp_jax.buffer import Transition
 from ccp_jax.config import make_config
 from ccp_jax.learner import init_agents, make_learner, make_networks
