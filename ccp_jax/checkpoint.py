@@ -47,6 +47,19 @@ def _rebuild(abstract: Any, saved: dict[str, Any]) -> Any:
         for i, x in enumerate(leaves)])
 
 
+def saved_grid_slots(mngr: ocp.CheckpointManager) -> int | None:
+    """The grid size of the latest checkpoint's arrays (the members padded for the devices it was saved
+    from), read from its metadata; None when there is no readable checkpoint."""
+    steps = mngr.all_steps()
+    if not steps:
+        return None
+    try:
+        meta = ocp.StandardCheckpointHandler().metadata(Path(mngr.directory) / str(max(steps)) / "state")
+        return int(meta["0"].shape[0])
+    except Exception:  # restore() reports a damaged checkpoint, naming it
+        return None
+
+
 def save(mngr: ocp.CheckpointManager, epoch: int, state: Any) -> None:
     """Saves `state` as step `epoch` and waits until it is complete on disk.
 

@@ -21,6 +21,7 @@ from jax.experimental import multihost_utils
 from tqdm.auto import tqdm
 
 from ccp_jax import checkpoint, loggers, outputs
+from ccp_jax.devices import CpuDevices, grid_devices, resume_devices, split_host_cpu
 from ccp_jax.config import (PRESETS, Config, ConfigError, CoopScale, NetworkInit, NextAction, Normaliser, PresetName, TanhLogProb,
                              make_config, parse_eta, parse_eta_vector)
 from ccp_jax.envs import make_env, user_env
@@ -114,6 +115,8 @@ class Args:
     """Success bootstraps the absorbing value of all-ones rewards (default on; off = success ends with value 0)."""
     tanh_log_prob: Optional[TanhLogProb] = None
     """The tanh correction in log π: exact (default) or rlkit (RLkit's log(1 − tanh² + 1e-6), capped at saturation)."""
+    cpu_devices: CpuDevices = "auto"
+    """On a CPU: split it into this many XLA devices, so grid members train side by side; auto: one per core (1: the whole CPU as one device). A count set in $XLA_FLAGS wins. Does not change results beyond float rounding."""
     members_at_once: Optional[int] = None
     """Grid members each device advances together (vmapped); the rest run one group after another in the same program. Default: 1 on CPU (fastest there), all on GPU/TPU. Does not change results beyond float rounding."""
     progress: bool = True
@@ -198,6 +201,23 @@ def resume_config(args: Args) -> Config:
     return config
 
 
+def run_devices(config: Config, out: Path, resume: bool) -> list:
+    """The devices the grid trains on: `grid_devices`; when resuming, as many as pad the grid to the size its
+    checkpoint was saved with (it holds the padded grid), so a run continues whatever split of the CPU
+    this process has."""
+    grid_size = config.grid_size
+    slots = checkpoint.saved_grid_slots(checkpoint.manager(out)) if resume else None
+    if slots is None:
+        return grid_devices(grid_size)  # not resuming, or no readable checkpoint (restore() says so)
+    devices = resume_devices(grid_size, slots)
+    if devices is None:
+        raise checkpoint.CheckpointError(
+            f"{out / checkpoint.CHECKPOINT_DIR} holds the grid's {grid_size} members padded to {slots} for the "
+            f"devices it was saved from; no number of this process's {jax.device_count()} devices pads them so: "
+            f"resume with K devices where ceil({grid_size} / K) · K = {slots} (--cpu-devices K on a CPU)")
+    return devices
+
+
 def run(config: Config, out: Path, progress: bool = True, resume: bool = False,
         checkpoint_every: int = 10, tensorboard: bool = True, wandb_project: Optional[str] = None,
         members_at_once: Optional[int] = None) -> dict:
@@ -218,11 +238,11 @@ def run(config: Config, out: Path, progress: bool = True, resume: bool = False,
 def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_every: int,
            sinks: loggers.Loggers, members_at_once: Optional[int]) -> dict:
     env = make_env(config)
+    mngr = checkpoint.manager(out)
     make = make_tp_grid if config.algo == "tp" else make_grid_train
-    trainer = make(config, env, members_at_once=members_at_once)
+    trainer = make(config, env, run_devices(config, out, resume), members_at_once=members_at_once)
     eta, seed = config.grid_arrays()
     lead = jax.process_index() == 0  # with several hosts, one writes the files; all save checkpoints
-    mngr = checkpoint.manager(out)
     metrics_path = out / "metrics.jsonl"
     start = time.time()
     if resume:
@@ -259,6 +279,7 @@ def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_e
                         mean_success=f"{success.mean():.2f}")
     mngr.close()
     summary = outputs.summarise(config, rows, wall_s=time.time() - start)
+    summary["devices"] = f"{len(trainer.devices)} {trainer.devices[0].platform}"  # wall_s is for this split
     if lead:
         outputs.write_json(out / "summary.json", summary)
     return summary
@@ -287,6 +308,9 @@ def to_host(tree):
 
 def main(argv: Optional[list[str]] = None) -> dict:
     args = tyro.cli(Args, args=argv)
+    if args.cpu_devices != "auto" and args.cpu_devices < 1:
+        raise ConfigError("cpu_devices", f"must be >= 1 or auto, got {args.cpu_devices}")
+    split_host_cpu(args.cpu_devices)  # before anything starts JAX
     if args.distributed:
         jax.distributed.initialize(coordinator_address=args.coordinator, num_processes=args.num_processes,
                                    process_id=args.process_id)
@@ -300,8 +324,10 @@ def main(argv: Optional[list[str]] = None) -> dict:
     else:
         config = config_from_args(args)
         out = prepare_out(args.out, config)
+    devices = run_devices(config, out, args.resume is not None)
     print(f"{'Resuming' if args.resume else 'Training'} {config.grid_size} run(s) of {config.algo} on {config.env} "
-          f"({config.num_stages} stages, {config.num_epochs} epochs of {config.steps_per_epoch} steps) -> {out}")
+          f"({config.num_stages} stages, {config.num_epochs} epochs of {config.steps_per_epoch} steps) on "
+          f"{len(devices)} {devices[0].platform} device{'s' * (len(devices) > 1)} -> {out}")
     summary = run(config, out, progress=args.progress, resume=args.resume is not None,
                   checkpoint_every=args.checkpoint_every, tensorboard=args.tensorboard,
                   wandb_project=args.wandb_project, members_at_once=args.members_at_once)

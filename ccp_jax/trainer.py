@@ -21,6 +21,7 @@ from ccp_jax import buffer as replay
 from ccp_jax.buffer import ReplayBuffer, Transition
 from ccp_jax.collect import EvalMetrics, make_collect, make_evaluate
 from ccp_jax.config import Config, ConfigError
+from ccp_jax.devices import grid_devices
 from ccp_jax.learner import AgentState, Networks, UpdateMetrics, init_agents, make_learner, make_networks
 from envs_mjx import cpu_compiler_options
 
@@ -144,8 +145,9 @@ def default_members_at_once(devices: Sequence[jax.Device], local_members: int) -
 class GridTrainer:
     """A `Trainer` mapped over the grid axis, jitted, and sharded over devices.
 
-    The grid axis (seeds × ratios) is split across `devices` with a 1-D mesh;
-    a grid that does not divide evenly is padded with copies of its last
+    The grid axis (seeds × ratios) is split across `devices` (default: the
+    fewest of the visible ones that give each the same share, `grid_devices`)
+    with a 1-D mesh; a grid that does not divide evenly is padded with copies of its last
     member, whose results are dropped. On each device, `members_at_once`
     members (rounded down to a divisor of the device's share) are vmapped
     together, and such groups run one after another inside the same compiled
@@ -158,7 +160,7 @@ class GridTrainer:
                  trainer: Trainer | None = None, members_at_once: int | None = None):
         trainer = make_train(config, env) if trainer is None else trainer  # e.g. TP brings its own
         self.networks = trainer.networks
-        self.devices = list(devices or jax.devices())
+        self.devices = list(devices) if devices else grid_devices(config.grid_size)
         self.grid_size = config.grid_size
         self.padded_size = -(-self.grid_size // len(self.devices)) * len(self.devices)
         local = self.padded_size // len(self.devices)
@@ -207,5 +209,5 @@ class GridTrainer:
 
 def make_grid_train(config: Config, env: Env, devices: Sequence[jax.Device] | None = None,
                     members_at_once: int | None = None) -> GridTrainer:
-    """The whole grid of `config` as one compiled program, sharded over `devices` (default: all)."""
+    """The whole grid of `config` as one compiled program, sharded over `devices` (default: `grid_devices`)."""
     return GridTrainer(config, env, devices, members_at_once=members_at_once)

@@ -21,6 +21,7 @@ import tyro
 
 from ccp_jax import checkpoint
 from ccp_jax.config import AUTO, Config, ConfigError, make_config
+from ccp_jax.devices import split_host_cpu
 
 # Domains: (env, rooms); the paper's four, and Brax's pusher (issue 11). Peg and pusher have two fixed stages.
 DOMAINS = {"maze2": ("maze", 2), "maze3": ("maze", 3), "maze4": ("maze", 4), "peg": ("peg", 2),
@@ -253,8 +254,10 @@ def write_text(path: Path, text: str) -> None:
 
 
 def cli(main: Callable[[Any], Any], args_type: type, errors: tuple[type[Exception], ...] = (ConfigError,)) -> None:
-    """Runs a script's `main` on its parsed command line; bad input (`errors`) ends in one line naming the
-    field (`error: seeds: ...`), not a traceback, as `python -m ccp_jax.train` does."""
+    """Runs a script's `main` on its parsed command line, as `python -m ccp_jax.train` runs: the CPU split
+    into one device per core (`ccp_jax.devices`), and bad input (`errors`) ending in one line naming the
+    field (`error: seeds: ...`), not a traceback."""
+    split_host_cpu("auto")
     try:
         main(tyro.cli(args_type))
     except errors as err:

@@ -4,9 +4,13 @@ import tempfile
 
 sys.path.insert(0, os.path.dirname(__file__))  # toy_env
 
+from ccp_jax.devices import cpu_device_flags  # noqa: E402
 from envs_mjx import cpu_xla_flags  # noqa: E402
 
-os.environ["XLA_FLAGS"] = cpu_xla_flags()  # as ccp_jax sets it, before any test imports JAX
+# As ccp_jax sets it, before any test imports JAX; and the CPU as one device (the CLI's default splits it
+# per core), so that no test's results depend on which test first started JAX. Tests of several
+# devices run in subprocesses with their own count (a later count in $XLA_FLAGS wins).
+os.environ["XLA_FLAGS"] = cpu_device_flags(cpu_xla_flags(), 1)
 
 # Many tests compile the same tiny programs; a persistent compilation cache shared by
 # the session (and its subprocesses) compiles each only once.

@@ -1,0 +1,62 @@
+"""Splitting the CPU into devices: the XLA flag, the devices a grid uses, and the CLI's --cpu-devices."""
+import json
+import os
+import re
+import subprocess
+import sys
+
+import jax
+import pytest
+
+from ccp_jax import devices
+
+
+def test_cpu_device_flags_adds_a_count_and_keeps_the_users():
+    assert devices.cpu_device_flags("", 2) == "--xla_force_host_platform_device_count=2"
+    assert devices.cpu_device_flags("--a=1", 3) == "--a=1 --xla_force_host_platform_device_count=3"
+    mine = "--xla_force_host_platform_device_count=5 --b"
+    assert devices.cpu_device_flags(mine, 2) == mine
+
+
+@pytest.mark.parametrize("grid, used", [(1, 1), (2, 2), (3, 3), (4, 4), (5, 3), (6, 3), (7, 4), (8, 4), (9, 3)])
+def test_a_grid_uses_the_fewest_devices_with_the_same_share(grid, used):
+    """Share per device = ceil(grid / 4); devices = ceil(grid / share): 5 members take 2 + 2 + 1, not 2 + 1 + 1 + 1."""
+    four = ["d0", "d1", "d2", "d3"]
+    assert devices.grid_devices(grid, four) == four[:used]
+
+
+@pytest.mark.parametrize("grid, slots, used", [(3, 3, 3), (3, 4, 4), (5, 6, 3), (5, 8, 4), (6, 6, 3), (3, 5, None)])
+def test_a_resumed_grid_uses_the_devices_that_pad_it_as_its_checkpoint(grid, slots, used):
+    """The most of 4 devices with ceil(grid / d) · d = slots; 3 members never pad to 5."""
+    four = ["d0", "d1", "d2", "d3"]
+    assert devices.resume_devices(grid, slots, four) == (None if used is None else four[:used])
+
+
+def test_split_host_cpu_changes_nothing_once_jax_runs(monkeypatch):
+    jax.devices()  # starts the backends
+    monkeypatch.setenv("XLA_FLAGS", "--x")
+    assert devices.split_host_cpu(2) is False
+    assert os.environ["XLA_FLAGS"] == "--x"
+
+
+def test_cli_trains_a_grid_on_two_cpu_devices(tmp_path):
+    """3 members on 2 devices: padded to 4 (2 each), the padding's results dropped."""
+    flags = re.sub(r"--xla_force_host_platform_device_count=\d+", "", os.environ.get("XLA_FLAGS", ""))
+    env = dict(os.environ, XLA_FLAGS=flags, JAX_PLATFORMS="cpu")
+    out = tmp_path / "run"
+    done = subprocess.run([sys.executable, "-m", "ccp_jax.train", "--preset", "tiny", "--seeds", "3", "--cpu-devices",
+                           "2", "--out", str(out), "--no-progress", "--no-tensorboard"],
+                          env=env, capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "on 2 cpu devices" in done.stdout
+    summary = json.loads((out / "summary.json").read_text())
+    assert [m["seed"] for m in summary["members"]] == [0, 1, 2]
+    rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
+    assert {r["member"] for r in rows} == {0, 1, 2}
+    # Its checkpoint holds 4 slots; one device cannot pad 3 members to 4: refused before compiling, named.
+    done = subprocess.run([sys.executable, "-m", "ccp_jax.train", "--resume", str(out), "--total-steps", "800",
+                           "--cpu-devices", "1", "--no-progress", "--no-tensorboard"],
+                          env=env, capture_output=True, text=True, timeout=900)
+    assert done.returncode == 1 and "Traceback" not in done.stderr
+    assert done.stderr.startswith("error: checkpoint: ") and "padded to 4" in done.stderr
+    assert "ceil(3 / K) · K = 4" in done.stderr
