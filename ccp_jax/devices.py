@@ -2,10 +2,12 @@
 
 On a CPU, XLA exposes one device by default, and one grid member's update
 (a few hundred small ops at [64, 64]) keeps only part of a second core busy.
-Split into one XLA device per core, the grid's members run side by side, one
-per core (`experiments/bench/cpu_devices.py`: on this project's 2-core CPU,
-1.6 – 1.7× the runs per second for grids of 2 and 4). Results do not depend on
-it beyond float rounding (`tests/test_multidevice.py`).
+Split into several XLA devices, the grid's members run side by side, one per
+device, and a grid that does not divide over the cores can take one device
+per member instead of computing padded copies (`grid_devices`). Measured with
+`experiments/bench/cpu_devices.py` on this project's 2-core CPU, paper epoch:
+12 members 1.45× and 3 members 1.52× the runs per second of one device.
+Results do not depend on it beyond float rounding (`tests/test_multidevice.py`).
 """
 from __future__ import annotations
 
@@ -35,7 +37,8 @@ def cpu_device_flags(flags: str, devices: int) -> str:
 
 
 def split_host_cpu(devices: CpuDevices = "auto") -> bool:
-    """Before JAX starts: expose `devices` CPU devices ("auto": one per available core) to this process.
+    """Before JAX starts: expose `devices` CPU devices to this process ("auto": twice the available cores, the
+    most `grid_devices` may choose; it picks how many a grid uses).
 
     Returns False, changing nothing, once JAX's backends are running (the flag is read when they start).
     A count the user set in $XLA_FLAGS wins. Accelerators are unaffected: only the CPU platform splits,
@@ -45,29 +48,46 @@ def split_host_cpu(devices: CpuDevices = "auto") -> bool:
 
     if xla_bridge.backends_are_initialized():
         return False
-    count = available_cores() if devices == "auto" else int(devices)
+    count = 2 * available_cores() if devices == "auto" else int(devices)
     os.environ["XLA_FLAGS"] = cpu_device_flags(os.environ.get("XLA_FLAGS", ""), count)
     return True
 
 
-def grid_devices(grid_size: int, devices: Sequence[jax.Device] | None = None) -> list[jax.Device]:
-    """The fewest of `devices` (default: all) that hold `grid_size` members with the same share per device.
+def epoch_cost(grid_size: int, used: int, cores: int) -> float:
+    """Relative time of an epoch of `grid_size` members on `used` CPU devices sharing `cores` cores: each device
+    runs its share (padded slots included) one member after another, and devices beyond the cores share them."""
+    return math.ceil(grid_size / used) * used / min(used, cores)
 
-    A grid of 1 on 2 devices uses 1 (no padded copy to compute), 6 on 4 uses 3 (2 each, as on 4). With
-    several processes every device is kept: each process must own a part of the grid.
+
+def grid_devices(grid_size: int, devices: Sequence[jax.Device] | None = None,
+                 cores: int | None = None) -> list[jax.Device]:
+    """The devices (a prefix of `devices`, default all) a grid of `grid_size` members trains on.
+
+    On a CPU the count with the least `epoch_cost` on `cores` cores (default: those available), the fewer on
+    a tie. Measured on 2 cores with the paper's epoch (`experiments/bench/cpu_devices.py`): 3 members train
+    1.52× faster on 3 devices than on one, and not faster on 2 (padded to 4: the copy costs a member's
+    time); 12 members 1.45× on 2 devices, 1.25× on 4. On accelerators, the fewest devices that give each
+    the same share (a grid of 6 on 4 GPUs uses 3). With several processes every device is kept: each
+    process must own a part of the grid.
     """
     devices = list(devices or jax.devices())
     if jax.process_count() > 1:
         return devices
+    if devices[0].platform == "cpu":
+        cores = cores or available_cores()
+        return devices[: min(range(1, len(devices) + 1), key=lambda d: (epoch_cost(grid_size, d, cores), d))]
     share = math.ceil(grid_size / len(devices))
     return devices[: math.ceil(grid_size / share)]
 
 
-def resume_devices(grid_size: int, slots: int, devices: Sequence[jax.Device] | None = None) -> list[jax.Device] | None:
-    """The most of `devices` (default: all) over which `grid_size` members pad to `slots`, a checkpoint's
-    grid size (the members padded for the devices it was saved from); None if no number of them does."""
+def resume_devices(grid_size: int, slots: int, devices: Sequence[jax.Device] | None = None,
+                   cores: int | None = None) -> list[jax.Device] | None:
+    """Devices (a prefix of `devices`, default all) over which `grid_size` members pad to `slots`, a
+    checkpoint's grid size (the members padded for the devices it was saved from): of those counts the
+    one `grid_devices` would prefer; None if no count pads to `slots`."""
     devices = list(devices or jax.devices())
     if jax.process_count() > 1:
         return devices
+    cores = cores or available_cores()
     fits = [d for d in range(1, len(devices) + 1) if math.ceil(grid_size / d) * d == slots]
-    return devices[: max(fits)] if fits else None
+    return devices[: min(fits, key=lambda d: (epoch_cost(grid_size, d, cores), d))] if fits else None

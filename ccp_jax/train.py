@@ -116,7 +116,7 @@ class Args:
     tanh_log_prob: Optional[TanhLogProb] = None
     """The tanh correction in log π: exact (default) or rlkit (RLkit's log(1 − tanh² + 1e-6), capped at saturation)."""
     cpu_devices: CpuDevices = "auto"
-    """On a CPU: split it into this many XLA devices, so grid members train side by side; auto: one per core (1: the whole CPU as one device). A count set in $XLA_FLAGS wins. Does not change results beyond float rounding."""
+    """On a CPU: split it into this many XLA devices, so grid members train side by side (auto: twice the cores; each grid takes the count that wastes least, ccp_jax.devices.grid_devices; 1: the whole CPU as one device). A count set in $XLA_FLAGS wins. Does not change results beyond float rounding."""
     members_at_once: Optional[int] = None
     """Grid members each device advances together (vmapped); the rest run one group after another in the same program. Default: 1 on CPU (fastest there), all on GPU/TPU. Does not change results beyond float rounding."""
     progress: bool = True

@@ -255,7 +255,7 @@ def write_text(path: Path, text: str) -> None:
 
 def cli(main: Callable[[Any], Any], args_type: type, errors: tuple[type[Exception], ...] = (ConfigError,)) -> None:
     """Runs a script's `main` on its parsed command line, as `python -m ccp_jax.train` runs: the CPU split
-    into one device per core (`ccp_jax.devices`), and bad input (`errors`) ending in one line naming the
+    into several devices (`ccp_jax.devices`), and bad input (`errors`) ending in one line naming the
     field (`error: seeds: ...`), not a traceback."""
     split_host_cpu("auto")
     try:

@@ -4,6 +4,7 @@ import os
 import re
 import subprocess
 import sys
+from typing import NamedTuple
 
 import jax
 import pytest
@@ -18,18 +19,41 @@ def test_cpu_device_flags_adds_a_count_and_keeps_the_users():
     assert devices.cpu_device_flags(mine, 2) == mine
 
 
+class Fake(NamedTuple):
+    platform: str
+    id: int
+
+
+def fake(platform: str, n: int) -> list:
+    return [Fake(platform, i) for i in range(n)]
+
+
+@pytest.mark.parametrize("grid, used", [(1, 1), (2, 2), (3, 3), (4, 2), (5, 2), (6, 2), (12, 2)])
+def test_a_cpu_grid_uses_the_device_count_that_wastes_least(grid, used):
+    """Cost of d devices on 2 cores = ceil(grid / d) · d / min(d, 2), fewer on a tie: 3 members take 3 devices
+    (cost 1.5; 2 devices cost 2, a padded copy), 4 take 2 (cost 2, as 4 devices), one run takes one."""
+    four = fake("cpu", 4)
+    assert devices.grid_devices(grid, four, cores=2) == four[:used]
+
+
+def test_a_cpu_grid_on_more_cores():
+    eight = fake("cpu", 8)
+    assert devices.grid_devices(6, eight, cores=4) == eight[:6]  # cost 1.5, against 2 on 3 or 4 devices
+    assert devices.grid_devices(16, eight, cores=4) == eight[:4]  # cost 4 from 4 devices on
+
+
 @pytest.mark.parametrize("grid, used", [(1, 1), (2, 2), (3, 3), (4, 4), (5, 3), (6, 3), (7, 4), (8, 4), (9, 3)])
-def test_a_grid_uses_the_fewest_devices_with_the_same_share(grid, used):
+def test_an_accelerator_grid_uses_the_fewest_devices_with_the_same_share(grid, used):
     """Share per device = ceil(grid / 4); devices = ceil(grid / share): 5 members take 2 + 2 + 1, not 2 + 1 + 1 + 1."""
-    four = ["d0", "d1", "d2", "d3"]
+    four = fake("gpu", 4)
     assert devices.grid_devices(grid, four) == four[:used]
 
 
-@pytest.mark.parametrize("grid, slots, used", [(3, 3, 3), (3, 4, 4), (5, 6, 3), (5, 8, 4), (6, 6, 3), (3, 5, None)])
-def test_a_resumed_grid_uses_the_devices_that_pad_it_as_its_checkpoint(grid, slots, used):
-    """The most of 4 devices with ceil(grid / d) · d = slots; 3 members never pad to 5."""
-    four = ["d0", "d1", "d2", "d3"]
-    assert devices.resume_devices(grid, slots, four) == (None if used is None else four[:used])
+@pytest.mark.parametrize("grid, slots, used", [(3, 3, 3), (3, 4, 2), (5, 6, 2), (5, 8, 4), (6, 6, 2), (3, 5, None)])
+def test_a_resumed_grid_uses_a_device_count_that_pads_it_as_its_checkpoint(grid, slots, used):
+    """Of the counts d ≤ 4 with ceil(grid / d) · d = slots, the cheapest on 2 cores; 3 members never pad to 5."""
+    four = fake("cpu", 4)
+    assert devices.resume_devices(grid, slots, four, cores=2) == (None if used is None else four[:used])
 
 
 def test_split_host_cpu_changes_nothing_once_jax_runs(monkeypatch):
@@ -48,7 +72,7 @@ def test_cli_trains_a_grid_on_two_cpu_devices(tmp_path):
                            "2", "--out", str(out), "--no-progress", "--no-tensorboard"],
                           env=env, capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stderr[-3000:]
-    assert "on 2 cpu devices" in done.stdout
+    assert "on 2 cpu devices" in done.stdout  # 2 exposed: 3 members cost 2 there, 3 on one
     summary = json.loads((out / "summary.json").read_text())
     assert [m["seed"] for m in summary["members"]] == [0, 1, 2]
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]

@@ -1,4 +1,4 @@
-"""A grid's epoch with the CPU as one XLA device against one device per core (the CLI's default).
+"""A grid's epoch with the CPU as one XLA device against the CLI's split (`--cpu-devices auto`: twice the cores).
 
     python experiments/bench/cpu_devices.py                              # grids of 1, 2, 3, 4, 12 on the 2-room maze
     python experiments/bench/cpu_devices.py --rooms 3 --grids 1 3 \\
@@ -9,8 +9,9 @@ process (this script, `--worker`), which builds and compiles the real grid
 trainer for every grid size, then times `reps` epochs of each round-robin.
 Processes for the two counts alternate `pairs` times, so drift of a shared
 machine falls on both; every figure is a median over all epochs of its
-configuration. Columns: epoch s per device count, and how many times more
-runs per second the split gives (`speed-up` = epoch on one device / epoch
+configuration. Each grid uses the devices `ccp_jax.devices.grid_devices`
+picks of those exposed (column `devices used`). Columns: epoch s per device
+count, and how many times more runs per second the split gives (`speed-up` = epoch on one device / epoch
 split). Settings as `grid_scaling.py` ([64, 64] nets, a shortened epoch with
 the paper's 5 env steps per update, CSAC on the N-room maze).
 """
@@ -37,7 +38,7 @@ class Args:
     """Grid sizes G (members trained in one program)."""
     rooms: int = 2
     devices: int = 0
-    """Devices to split the CPU into (0: one per available core); compared with 1."""
+    """Devices to split the CPU into (0: the CLI's auto, twice the available cores); compared with 1."""
     steps_per_epoch: int = 500
     loops: int = 100
     eval_episodes: int = 5
@@ -81,7 +82,7 @@ def spawn(args: Args, devices: int) -> dict:
 
 
 def main(args: Args) -> dict:
-    split = args.devices or available_cores()
+    split = args.devices or 2 * available_cores()
     print(f"{args.rooms}-room CSAC, [64, 64], epoch = {args.steps_per_epoch} env steps + {args.loops} updates + eval "
           f"{args.eval_episodes} × ≤{args.episode_length} steps; 1 device against {split}, {args.pairs} alternating "
           f"processes each, {args.reps} epochs per configuration and process", flush=True)
