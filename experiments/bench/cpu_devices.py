@@ -30,22 +30,16 @@ import tyro
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from ccp_jax.devices import CPU_DEVICES, available_cores  # noqa: E402
+from grid_scaling import EpochShape, config_for  # noqa: E402
 
 
 @dataclasses.dataclass
-class Args:
+class Args(EpochShape):
     grids: tuple[int, ...] = (1, 2, 3, 4, 12)
     """Grid sizes G (members trained in one program)."""
     rooms: int = 2
     devices: int = 0
     """Devices to split the CPU into (0: the CLI's auto, twice the available cores); compared with 1."""
-    steps_per_epoch: int = 500
-    loops: int = 100
-    eval_episodes: int = 5
-    episode_length: int = 200
-    buffer: int = 10_000
-    reps: int = 3
-    """Timed epochs per configuration and process."""
     pairs: int = 2
     """Processes per device count, alternating."""
     worker: int = 0
@@ -54,13 +48,10 @@ class Args:
 
 def worker(args: Args) -> None:
     import jax
-    from grid_scaling import Args as GridArgs, config_for
     from timed import TimedGrid
 
-    shape = GridArgs(steps_per_epoch=args.steps_per_epoch, loops=args.loops, eval_episodes=args.eval_episodes,
-                     episode_length=args.episode_length, buffer=args.buffer)
     assert jax.device_count() == args.worker, jax.devices()
-    runs = {g: TimedGrid(config_for(shape, args.rooms, g)) for g in args.grids}
+    runs = {g: TimedGrid(config_for(args, args.rooms, g)) for g in args.grids}
     for _ in range(args.reps):
         for run in runs.values():
             run.epoch()
@@ -74,7 +65,7 @@ def spawn(args: Args, devices: int) -> dict:
     argv = [sys.executable, __file__, "--worker", str(devices), "--rooms", str(args.rooms), "--reps", str(args.reps),
             "--steps-per-epoch", str(args.steps_per_epoch), "--loops", str(args.loops), "--eval-episodes",
             str(args.eval_episodes), "--episode-length", str(args.episode_length), "--buffer", str(args.buffer),
-            "--grids", *map(str, args.grids)]
+            "--preset", args.preset, "--hidden", *map(str, args.hidden), "--grids", *map(str, args.grids)]
     done = subprocess.run(argv, env=env, capture_output=True, text=True)
     if done.returncode != 0:
         raise SystemExit(done.stderr[-3000:])

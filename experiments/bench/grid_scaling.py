@@ -47,15 +47,9 @@ from timed import TimedGrid  # noqa: E402
 
 
 @dataclasses.dataclass
-class Args:
-    grids: tuple[int, ...] = (1, 2, 4, 8, 16, 32)
-    """Grid sizes G for the grid sweep (at `grid_agents` agents); empty to skip."""
-    grid_agents: int = 3
-    modes: tuple[Literal["one", "vmap"], ...] = ("one", "vmap")
-    """Grid modes: members one at a time (members_at_once=1) and/or all vmapped (members_at_once=G)."""
-    agents: tuple[int, ...] = (1, 2, 3, 4)
-    """Agent counts N for the agent sweep (at G = `agents_grid`); empty to skip."""
-    agents_grid: int = 1
+class EpochShape:
+    """A shortened epoch with the paper's 5 env steps per update (shared with cpu_devices.py)."""
+
     preset: str = "small"
     hidden: tuple[int, ...] = (64, 64)
     steps_per_epoch: int = 500
@@ -64,10 +58,22 @@ class Args:
     episode_length: int = 200
     buffer: int = 10_000
     reps: int = 3
+
+
+@dataclasses.dataclass
+class Args(EpochShape):
+    grids: tuple[int, ...] = (1, 2, 4, 8, 16, 32)
+    """Grid sizes G for the grid sweep (at `grid_agents` agents); empty to skip."""
+    grid_agents: int = 3
+    modes: tuple[Literal["one", "vmap"], ...] = ("one", "vmap")
+    """Grid modes: members one at a time (members_at_once=1) and/or all vmapped (members_at_once=G)."""
+    agents: tuple[int, ...] = (1, 2, 3, 4)
+    """Agent counts N for the agent sweep (at G = `agents_grid`); empty to skip."""
+    agents_grid: int = 1
     breakdown: bool = False
 
 
-def config_for(args: Args, n_agents: int, grid: int, **overrides):
+def config_for(args: EpochShape, n_agents: int, grid: int, **overrides):
     algo, rooms = ("sac", 2) if n_agents == 1 else ("csac", n_agents)
     fields = dict(algo=algo, rooms=rooms, hidden=args.hidden, steps_per_epoch=args.steps_per_epoch,
                   train_loops_per_epoch=args.loops, num_envs=1, start_steps=0, eval_episodes=args.eval_episodes,
