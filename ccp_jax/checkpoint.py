@@ -47,17 +47,20 @@ def _rebuild(abstract: Any, saved: dict[str, Any]) -> Any:
         for i, x in enumerate(leaves)])
 
 
-def saved_grid_slots(mngr: ocp.CheckpointManager) -> int | None:
-    """The grid size of the latest checkpoint's arrays (the members padded for the devices it was saved
-    from), read from its metadata; None when there is no readable checkpoint."""
-    steps = mngr.all_steps()
-    if not steps:
-        return None
+def saved_grid_slots(run_dir: Path) -> int | None:
+    """The grid size of the latest checkpoint's arrays in `run_dir` (the members padded for the devices it
+    was saved from), read from its metadata; None when there is no readable checkpoint."""
+    mngr = manager(run_dir)
     try:
+        steps = mngr.all_steps()
+        if not steps:
+            return None
         meta = ocp.StandardCheckpointHandler().metadata(Path(mngr.directory) / str(max(steps)) / "state")
         return int(meta["0"].shape[0])
     except Exception:  # restore() reports a damaged checkpoint, naming it
         return None
+    finally:
+        mngr.close()
 
 
 def save(mngr: ocp.CheckpointManager, epoch: int, state: Any) -> None:

@@ -53,31 +53,39 @@ def split_host_cpu(devices: CpuDevices = "auto") -> bool:
     return True
 
 
-def epoch_cost(grid_size: int, used: int, cores: int) -> float:
-    """Relative time of an epoch of `grid_size` members on `used` CPU devices sharing `cores` cores: each device
-    runs its share (padded slots included) one member after another, and devices beyond the cores share them."""
-    return math.ceil(grid_size / used) * used / min(used, cores)
+def epoch_cost(grid_size: int, used: int, cores: int | None) -> float:
+    """Relative time of an epoch of `grid_size` members on `used` devices: each device runs its share (padded
+    slots included) one member after another. CPU devices beyond `cores` share them; `cores` None: every
+    device has its own (accelerators), so the cost is the share alone."""
+    return math.ceil(grid_size / used) * used / (used if cores is None else min(used, cores))
+
+
+def _cheapest(devices: list, counts, grid_size: int, cores: int | None) -> list:
+    """The prefix of `devices` whose length, of `counts`, has the least `epoch_cost` (the fewer on a tie).
+
+    `cores` of a CPU default to those available; accelerators have none to share."""
+    if devices[0].platform == "cpu":
+        cores = cores or available_cores()
+    else:
+        cores = None
+    return devices[: min(counts, key=lambda d: (epoch_cost(grid_size, d, cores), d))]
 
 
 def grid_devices(grid_size: int, devices: Sequence[jax.Device] | None = None,
                  cores: int | None = None) -> list[jax.Device]:
-    """The devices (a prefix of `devices`, default all) a grid of `grid_size` members trains on.
+    """The devices (a prefix of `devices`, default all) a grid of `grid_size` members trains on: the count
+    with the least `epoch_cost`, the fewer on a tie.
 
-    On a CPU the count with the least `epoch_cost` on `cores` cores (default: those available), the fewer on
-    a tie. Measured on 2 cores with the paper's epoch (`experiments/bench/cpu_devices.py`): 3 members train
-    1.52× faster on 3 devices than on one, and not faster on 2 (padded to 4: the copy costs a member's
-    time); 12 members 1.45× on 2 devices, 1.25× on 4. On accelerators, the fewest devices that give each
-    the same share (a grid of 6 on 4 GPUs uses 3). With several processes every device is kept: each
-    process must own a part of the grid.
+    On a CPU that weighs padded copies against cores shared. Measured on 2 cores with the paper's epoch
+    (`experiments/bench/cpu_devices.py`): 3 members train 1.52× faster on 3 devices than on one, and not
+    faster on 2 (padded to 4: the copy costs a member's time); 12 members 1.45× on 2 devices, 1.25× on 4.
+    On accelerators it is the fewest devices with the smallest share (a grid of 6 on 4 GPUs uses 3). With
+    several processes every device is kept: each process must own a part of the grid.
     """
     devices = list(devices or jax.devices())
     if jax.process_count() > 1:
         return devices
-    if devices[0].platform == "cpu":
-        cores = cores or available_cores()
-        return devices[: min(range(1, len(devices) + 1), key=lambda d: (epoch_cost(grid_size, d, cores), d))]
-    share = math.ceil(grid_size / len(devices))
-    return devices[: math.ceil(grid_size / share)]
+    return _cheapest(devices, range(1, len(devices) + 1), grid_size, cores)
 
 
 def resume_devices(grid_size: int, slots: int, devices: Sequence[jax.Device] | None = None,
@@ -88,6 +96,5 @@ def resume_devices(grid_size: int, slots: int, devices: Sequence[jax.Device] | N
     devices = list(devices or jax.devices())
     if jax.process_count() > 1:
         return devices
-    cores = cores or available_cores()
     fits = [d for d in range(1, len(devices) + 1) if math.ceil(grid_size / d) * d == slots]
-    return devices[: min(fits, key=lambda d: (epoch_cost(grid_size, d, cores), d))] if fits else None
+    return _cheapest(devices, fits, grid_size, cores) if fits else None

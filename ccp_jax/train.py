@@ -206,7 +206,7 @@ def run_devices(config: Config, out: Path, resume: bool) -> list:
     checkpoint was saved with (it holds the padded grid), so a run continues whatever split of the CPU
     this process has."""
     grid_size = config.grid_size
-    slots = checkpoint.saved_grid_slots(checkpoint.manager(out)) if resume else None
+    slots = checkpoint.saved_grid_slots(out) if resume else None
     if slots is None:
         return grid_devices(grid_size)  # not resuming, or no readable checkpoint (restore() says so)
     devices = resume_devices(grid_size, slots)
@@ -220,29 +220,31 @@ def run_devices(config: Config, out: Path, resume: bool) -> list:
 
 def run(config: Config, out: Path, progress: bool = True, resume: bool = False,
         checkpoint_every: int = 10, tensorboard: bool = True, wandb_project: Optional[str] = None,
-        members_at_once: Optional[int] = None) -> dict:
+        members_at_once: Optional[int] = None, devices: Optional[list] = None) -> dict:
     """Trains the grid of `config` in `out`: config.json, metrics.jsonl, summary.json, checkpoints/.
 
     With `resume`, continues from the latest checkpoint in `out`; metrics rows
     written after that checkpoint are replaced by their (identical) recomputation.
     `members_at_once`: see `GridTrainer` (default: 1 on CPU, the whole grid on accelerators).
+    `devices`: what the grid trains on (default: `run_devices`).
     Returns the summary (per member: final success = mean of the last 10 epochs).
     """
     sinks = loggers.make_loggers(out, config, tensorboard, wandb_project)  # fails before compiling
     try:
-        return _train(config, out, progress, resume, checkpoint_every, sinks, members_at_once)
+        return _train(config, out, progress, resume, checkpoint_every, sinks, members_at_once,
+                      devices or run_devices(config, out, resume))
     finally:
         sinks.close()
 
 
 def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_every: int,
-           sinks: loggers.Loggers, members_at_once: Optional[int]) -> dict:
+           sinks: loggers.Loggers, members_at_once: Optional[int], devices: list) -> dict:
     env = make_env(config)
-    mngr = checkpoint.manager(out)
     make = make_tp_grid if config.algo == "tp" else make_grid_train
-    trainer = make(config, env, run_devices(config, out, resume), members_at_once=members_at_once)
+    trainer = make(config, env, devices, members_at_once=members_at_once)
     eta, seed = config.grid_arrays()
     lead = jax.process_index() == 0  # with several hosts, one writes the files; all save checkpoints
+    mngr = checkpoint.manager(out)
     metrics_path = out / "metrics.jsonl"
     start = time.time()
     if resume:
@@ -330,7 +332,7 @@ def main(argv: Optional[list[str]] = None) -> dict:
           f"{len(devices)} {devices[0].platform} device{'s' * (len(devices) > 1)} -> {out}")
     summary = run(config, out, progress=args.progress, resume=args.resume is not None,
                   checkpoint_every=args.checkpoint_every, tensorboard=args.tensorboard,
-                  wandb_project=args.wandb_project, members_at_once=args.members_at_once)
+                  wandb_project=args.wandb_project, members_at_once=args.members_at_once, devices=devices)
     print(outputs.summary_table(summary))
     print(f"wall time {summary['wall_s']:.0f} s; files in {out}")
     return summary

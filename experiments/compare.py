@@ -36,7 +36,6 @@ import tyro
 from scipy import stats
 
 from ccp_jax import plot
-from ccp_jax import outputs
 from common import cli, mean_std, merged_summary, read_json, success_at, write_text
 
 
@@ -96,16 +95,18 @@ def parse_variant(text: str) -> tuple[str, list[Path]]:
     return label, folders
 
 
-def progress(folder: Path) -> Optional[str]:
-    """'DIR: 60,000 of 200,000 env steps' for a run still training (no summary.json), else None."""
-    if (folder / "summary.json").exists():
-        return None
-    done = max((r["env_steps"] for r in outputs.read_rows(folder / "metrics.jsonl")), default=0)
-    return f"{folder}: {done:,} of {read_json(folder / 'config.json')['total_steps']:,} env steps"
+def progress(members: list[dict]) -> list[str]:
+    """'DIR: 60,000 of 200,000 env steps' for each run folder of `members` still training (no summary.json)."""
+    done: dict[str, int] = {}
+    for m in members:
+        if not (Path(m["run"]) / "summary.json").exists():
+            done[m["run"]] = max(done.get(m["run"], 0), m["env_steps"])
+    return [f"{run}: {steps:,} of {read_json(Path(run) / 'config.json')['total_steps']:,} env steps"
+            for run, steps in done.items()]
 
 
-def variant_rows(label: str, folders: list[Path], at: tuple[int, ...]) -> list[Row]:
-    """One row per (algo, ratio) group of the pooled folders."""
+def variant_rows(label: str, folders: list[Path], at: tuple[int, ...]) -> tuple[list[Row], list[str]]:
+    """One row per (algo, ratio) group of the pooled folders, and `progress` of those still training."""
     groups = plot.load_curves(folders)
     members = merged_summary(folders, in_progress=True)["members"]
     rows = []
@@ -114,7 +115,7 @@ def variant_rows(label: str, folders: list[Path], at: tuple[int, ...]) -> list[R
         per_seed = [[(success_at([one], step) or [np.nan])[0] for step in at] for one in groups[group]]
         rows.append(Row(plot.variant_label(label, group, groups), np.array(finals),
                         np.array(per_seed, np.float64).reshape(-1, len(at))))
-    return rows
+    return rows, progress(members)
 
 
 def table(rows: list[Row], at: tuple[int, ...], solved: float, reference: tuple[float, ...] = (), draw: int = 3) -> str:
@@ -140,10 +141,12 @@ def table(rows: list[Row], at: tuple[int, ...], solved: float, reference: tuple[
 
 
 def main(args: Args) -> str:
-    variants = [parse_variant(text) for text in args.variants]
-    rows = [row for label, folders in variants for row in variant_rows(label, folders, args.at)]
+    rows, running = [], []
+    for label, folders in [parse_variant(text) for text in args.variants]:  # every entry checked first
+        variant, still = variant_rows(label, folders, args.at)
+        rows += variant
+        running += still
     text = table(rows, args.at, args.solved, args.reference, args.draw)
-    running = [line for _, folders in variants for folder in folders if (line := progress(folder))]
     if running:
         text += "\nStill training (finals so far: the mean of the last evaluations logged): " + "; ".join(running) + "\n"
     if args.out:

@@ -14,7 +14,6 @@ import dataclasses
 from pathlib import Path
 from typing import Optional
 
-
 from ccp_jax import plot
 from ccp_jax.config import AUTO
 from common import ScaleName, best_swept_eta, cli, merged_summary, results_folder
