@@ -47,22 +47,6 @@ def _rebuild(abstract: Any, saved: dict[str, Any]) -> Any:
         for i, x in enumerate(leaves)])
 
 
-def saved_grid_slots(run_dir: Path) -> int | None:
-    """The grid size of the latest checkpoint's arrays in `run_dir` (the members padded for the devices it
-    was saved from), read from its metadata; None when there is no readable checkpoint."""
-    mngr = manager(run_dir)
-    try:
-        steps = mngr.all_steps()
-        if not steps:
-            return None
-        meta = ocp.StandardCheckpointHandler().metadata(Path(mngr.directory) / str(max(steps)) / "state")
-        return int(meta["0"].shape[0])
-    except Exception:  # restore() reports a damaged checkpoint, naming it
-        return None
-    finally:
-        mngr.close()
-
-
 def save(mngr: ocp.CheckpointManager, epoch: int, state: Any) -> None:
     """Saves `state` as step `epoch` and waits until it is complete on disk.
 
@@ -74,10 +58,32 @@ def save(mngr: ocp.CheckpointManager, epoch: int, state: Any) -> None:
     mngr.wait_until_finished()
 
 
+def _repadded(saved: dict[str, np.ndarray], target: dict[str, Any], grid_size: int) -> dict[str, Any]:
+    """Host arrays of a grid padded for other devices, cut to its `grid_size` real members and padded again
+    with copies of the last one (what `GridTrainer` pads with) to the leading size of `target`'s leaves,
+    then placed with their shardings."""
+    def one(x: np.ndarray, want: Any) -> Any:
+        x = x[:grid_size]
+        x = np.concatenate([x, np.repeat(x[-1:], want.shape[0] - grid_size, axis=0)])
+        return jax.device_put(x, getattr(want, "sharding", None))
+    return {k: one(saved[k], want) for k, want in target.items()}
+
+
+def _unreadable(folder: Path, epoch: int, steps, err: Exception) -> CheckpointError:
+    earlier = sorted(s for s in steps if s != epoch)
+    hint = (f"; earlier checkpoints {earlier} are untouched: move {folder / str(epoch)} away to resume from one"
+            if earlier else "")
+    return CheckpointError(f"{folder / str(epoch)} cannot be restored ({type(err).__name__}: {str(err)[:300]}){hint}")
+
+
 def restore(mngr: ocp.CheckpointManager, abstract_state: Any, item: str = "state",
-            epoch: int | None = None) -> tuple[int, Any]:
+            epoch: int | None = None, grid_size: int | None = None) -> tuple[int, Any]:
     """A complete checkpoint (default: the latest), restored into the structure and shardings
     of `abstract_state`. `item` is "state" (everything) or "policy" (the actors' parameters).
+
+    Every leaf has the grid axis first. A checkpoint saved from another device split holds the grid padded
+    to another size: given the real `grid_size`, its members are kept and the padding redone for
+    `abstract_state` (in host memory), so a run resumes, or a policy loads, on any number of devices.
 
     Raises `CheckpointError` naming the folder when there is none, when it is
     unreadable, or when its arrays do not match the config's shapes.
@@ -91,15 +97,21 @@ def restore(mngr: ocp.CheckpointManager, abstract_state: Any, item: str = "state
     elif epoch not in steps:
         raise CheckpointError(f"no checkpoint of epoch {epoch} in {folder}; there are {sorted(steps)}")
     try:
-        saved = mngr.restore(epoch, args=ocp.args.Composite(
-            **{item: ocp.args.StandardRestore(_nonempty(abstract_state))}))[item]
-        state = _rebuild(abstract_state, saved)
+        meta = ocp.StandardCheckpointHandler().metadata(folder / str(epoch) / item)
     except Exception as err:  # orbax raises many types for damaged files
-        earlier = sorted(s for s in steps if s != epoch)
-        hint = (f"; earlier checkpoints {earlier} are untouched: move {folder / str(epoch)} away to resume from one"
-                if earlier else "")
-        raise CheckpointError(f"{folder / str(epoch)} cannot be restored "
-                              f"({type(err).__name__}: {str(err)[:300]}){hint}") from err
+        raise _unreadable(folder, epoch, steps, err) from err
+    target = _nonempty(abstract_state)
+    slots = {m.shape[0] for m in meta.values()}
+    repad = grid_size is not None and slots != {x.shape[0] for x in target.values()} and min(slots) >= grid_size
+    if repad and jax.process_count() > 1:
+        raise CheckpointError(f"{folder / str(epoch)} holds the grid padded to {max(slots)} slots for other "
+                              "devices; with several processes resume on as many devices as it was saved from")
+    restore_as = {k: np.empty(m.shape, m.dtype) for k, m in meta.items()} if repad else target
+    try:
+        saved = mngr.restore(epoch, args=ocp.args.Composite(**{item: ocp.args.StandardRestore(restore_as)}))[item]
+        state = _rebuild(abstract_state, _repadded(saved, target, grid_size) if repad else saved)
+    except Exception as err:
+        raise _unreadable(folder, epoch, steps, err) from err
     for got, want in zip(jax.tree.leaves(state), jax.tree.leaves(abstract_state)):
         if got.shape != want.shape or got.dtype != want.dtype:
             raise CheckpointError(f"{folder / str(epoch)} holds an array {got.shape} {got.dtype} where "

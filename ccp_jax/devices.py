@@ -60,21 +60,10 @@ def epoch_cost(grid_size: int, used: int, cores: int | None) -> float:
     return math.ceil(grid_size / used) * used / (used if cores is None else min(used, cores))
 
 
-def _cheapest(devices: list, counts, grid_size: int, cores: int | None) -> list:
-    """The prefix of `devices` whose length, of `counts`, has the least `epoch_cost` (the fewer on a tie).
-
-    `cores` of a CPU default to those available; accelerators have none to share."""
-    if devices[0].platform == "cpu":
-        cores = cores or available_cores()
-    else:
-        cores = None
-    return devices[: min(counts, key=lambda d: (epoch_cost(grid_size, d, cores), d))]
-
-
 def grid_devices(grid_size: int, devices: Sequence[jax.Device] | None = None,
                  cores: int | None = None) -> list[jax.Device]:
     """The devices (a prefix of `devices`, default all) a grid of `grid_size` members trains on: the count
-    with the least `epoch_cost`, the fewer on a tie.
+    with the least `epoch_cost`, the fewer on a tie. `cores` of a CPU default to those available.
 
     On a CPU that weighs padded copies against cores shared. Measured on 2 cores with the paper's epoch
     (`experiments/bench/cpu_devices.py`): 3 members train 1.52× faster on 3 devices than on one, and not
@@ -85,16 +74,5 @@ def grid_devices(grid_size: int, devices: Sequence[jax.Device] | None = None,
     devices = list(devices or jax.devices())
     if jax.process_count() > 1:
         return devices
-    return _cheapest(devices, range(1, len(devices) + 1), grid_size, cores)
-
-
-def resume_devices(grid_size: int, slots: int, devices: Sequence[jax.Device] | None = None,
-                   cores: int | None = None) -> list[jax.Device] | None:
-    """Devices (a prefix of `devices`, default all) over which `grid_size` members pad to `slots`, a
-    checkpoint's grid size (the members padded for the devices it was saved from): of those counts the
-    one `grid_devices` would prefer; None if no count pads to `slots`."""
-    devices = list(devices or jax.devices())
-    if jax.process_count() > 1:
-        return devices
-    fits = [d for d in range(1, len(devices) + 1) if math.ceil(grid_size / d) * d == slots]
-    return _cheapest(devices, fits, grid_size, cores) if fits else None
+    cores = (cores or available_cores()) if devices[0].platform == "cpu" else None  # accelerators share none
+    return devices[: min(range(1, len(devices) + 1), key=lambda d: (epoch_cost(grid_size, d, cores), d))]

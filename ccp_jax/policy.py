@@ -32,7 +32,7 @@ def load_policy(run_dir: str | Path, member: int = 0, epoch: int | None = None) 
     trainer = make_grid_train(config, env, jax.devices()[:1])
     abstract = trainer.abstract_state(config.grid_arrays()[1]).agents.actor
     mngr = checkpoint.manager(run_dir)
-    _, actors = checkpoint.restore(mngr, abstract, item="policy", epoch=epoch)
+    _, actors = checkpoint.restore(mngr, abstract, item="policy", grid_size=config.grid_size, epoch=epoch)
     mngr.close()
     params = jax.tree.map(lambda x: x[member], actors)
     actor = trainer.networks.actor

@@ -21,7 +21,7 @@ from jax.experimental import multihost_utils
 from tqdm.auto import tqdm
 
 from ccp_jax import checkpoint, loggers, outputs
-from ccp_jax.devices import CpuDevices, grid_devices, resume_devices, split_host_cpu
+from ccp_jax.devices import CpuDevices, grid_devices, split_host_cpu
 from ccp_jax.config import (PRESETS, Config, ConfigError, CoopScale, NetworkInit, NextAction, Normaliser, PresetName, TanhLogProb,
                              make_config, parse_eta, parse_eta_vector)
 from ccp_jax.envs import make_env, user_env
@@ -201,23 +201,6 @@ def resume_config(args: Args) -> Config:
     return config
 
 
-def run_devices(config: Config, out: Path, resume: bool) -> list:
-    """The devices the grid trains on: `grid_devices`; when resuming, as many as pad the grid to the size its
-    checkpoint was saved with (it holds the padded grid), so a run continues whatever split of the CPU
-    this process has."""
-    grid_size = config.grid_size
-    slots = checkpoint.saved_grid_slots(out) if resume else None
-    if slots is None:
-        return grid_devices(grid_size)  # not resuming, or no readable checkpoint (restore() says so)
-    devices = resume_devices(grid_size, slots)
-    if devices is None:
-        raise checkpoint.CheckpointError(
-            f"{out / checkpoint.CHECKPOINT_DIR} holds the grid's {grid_size} members padded to {slots} for the "
-            f"devices it was saved from; no number of this process's {jax.device_count()} devices pads them so: "
-            f"resume with K devices where ceil({grid_size} / K) · K = {slots} (--cpu-devices K on a CPU)")
-    return devices
-
-
 def run(config: Config, out: Path, progress: bool = True, resume: bool = False,
         checkpoint_every: int = 10, tensorboard: bool = True, wandb_project: Optional[str] = None,
         members_at_once: Optional[int] = None, devices: Optional[list] = None) -> dict:
@@ -226,13 +209,14 @@ def run(config: Config, out: Path, progress: bool = True, resume: bool = False,
     With `resume`, continues from the latest checkpoint in `out`; metrics rows
     written after that checkpoint are replaced by their (identical) recomputation.
     `members_at_once`: see `GridTrainer` (default: 1 on CPU, the whole grid on accelerators).
-    `devices`: what the grid trains on (default: `run_devices`).
+    `devices`: what the grid trains on (default: `grid_devices`); a resumed run may use another split
+    than its checkpoint's (`checkpoint.restore` pads the grid anew).
     Returns the summary (per member: final success = mean of the last 10 epochs).
     """
     sinks = loggers.make_loggers(out, config, tensorboard, wandb_project)  # fails before compiling
     try:
         return _train(config, out, progress, resume, checkpoint_every, sinks, members_at_once,
-                      devices or run_devices(config, out, resume))
+                      devices or grid_devices(config.grid_size))
     finally:
         sinks.close()
 
@@ -248,7 +232,7 @@ def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_e
     metrics_path = out / "metrics.jsonl"
     start = time.time()
     if resume:
-        first_epoch, state = checkpoint.restore(mngr, trainer.abstract_state(seed))
+        first_epoch, state = checkpoint.restore(mngr, trainer.abstract_state(seed), grid_size=config.grid_size)
         if first_epoch > config.num_epochs:
             raise ConfigError("total_steps", f"the run already has {first_epoch} epochs, more than {config.num_epochs}")
         rows = [r for r in outputs.read_rows(metrics_path) if r["epoch"] <= first_epoch]
@@ -326,7 +310,7 @@ def main(argv: Optional[list[str]] = None) -> dict:
     else:
         config = config_from_args(args)
         out = prepare_out(args.out, config)
-    devices = run_devices(config, out, args.resume is not None)
+    devices = grid_devices(config.grid_size)
     print(f"{'Resuming' if args.resume else 'Training'} {config.grid_size} run(s) of {config.algo} on {config.env} "
           f"({config.num_stages} stages, {config.num_epochs} epochs of {config.steps_per_epoch} steps) on "
           f"{len(devices)} {devices[0].platform} device{'s' * (len(devices) > 1)} -> {out}")

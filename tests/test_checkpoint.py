@@ -2,7 +2,10 @@
 import json
 import shutil
 
+from typing import NamedTuple
+
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -101,6 +104,39 @@ def test_corrupt_checkpoint_gives_a_clear_error(tmp_path, uninterrupted):
     assert (out / "metrics.jsonl").read_bytes() == before
     with pytest.raises(ConfigError, match="^resume:"):
         main(["--resume", str(tmp_path / "nothing"), "--no-progress"])
+
+
+class Agents(NamedTuple):
+    actor: dict
+
+
+class Toy(NamedTuple):
+    """The shape of a grid's state for `checkpoint.save`: every leaf has the grid axis first."""
+    agents: Agents
+    steps: jax.Array
+    empty: jax.Array  # zero-size, as MJX states have
+
+
+@pytest.mark.parametrize("slots", [3, 6])
+def test_a_grid_padded_for_other_devices_is_padded_anew(tmp_path, slots):
+    """3 members saved padded to 4 (2 devices) restore into 3 slots (1 device) and 6 (3 devices of 2): the real
+    members are kept and the padding is copies of member 2, whatever the saved padding held."""
+    rows = jnp.array([[0.0, 10.0], [1.0, 11.0], [2.0, 12.0], [-1.0, -1.0]])  # slot 3: the old padding
+    saved = Toy(Agents({"w": rows}), jnp.array([5, 6, 7, -1]), jnp.zeros((4, 0)))
+    mngr = checkpoint.manager(tmp_path)
+    checkpoint.save(mngr, 1, saved)
+    want_rows = np.array([[0.0, 10.0], [1.0, 11.0], [2.0, 12.0]] + [[2.0, 12.0]] * (slots - 3))
+    abstract = jax.tree.map(lambda x: jax.ShapeDtypeStruct((slots,) + x.shape[1:], x.dtype), saved)
+    epoch, got = checkpoint.restore(mngr, abstract, grid_size=3)
+    assert epoch == 1
+    np.testing.assert_array_equal(got.agents.actor["w"], want_rows)
+    np.testing.assert_array_equal(got.steps, [5, 6, 7] + [7] * (slots - 3))
+    assert got.empty.shape == (slots, 0)
+    _, actor = checkpoint.restore(mngr, abstract.agents.actor, item="policy", grid_size=3)
+    np.testing.assert_array_equal(actor["w"], want_rows)
+    with pytest.raises(checkpoint.CheckpointError):  # without the grid size the padding cannot be redone
+        checkpoint.restore(mngr, abstract)
+    mngr.close()
 
 
 def test_load_policy_acts_like_the_trained_actor(uninterrupted):

@@ -60,7 +60,7 @@ def load_primitives(config: Config) -> Primitives:
     abstract = trainer.abstract_state(saved.grid_arrays()[1]).agents.actor
     mngr = checkpoint.manager(Path(config.primitives))
     try:
-        _, actors = checkpoint.restore(mngr, abstract, item="policy")
+        _, actors = checkpoint.restore(mngr, abstract, item="policy", grid_size=saved.grid_size)
     finally:
         mngr.close()
     params = jax.tree.map(lambda x: jax.device_get(x[config.primitives_member]), actors)
