@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -12,8 +12,21 @@ from ccp_jax import checkpoint
 from ccp_jax.collect import agent_of, policy_mean_and_log_std
 from ccp_jax.config import Config
 from ccp_jax.envs import make_env
-from ccp_jax.networks import deterministic_action
+from ccp_jax.networks import Actor, deterministic_action
 from ccp_jax.trainer import make_grid_train
+
+
+def load_actors(run_dir: str | Path, config: Config, epoch: int | None = None) -> tuple[Actor, Any]:
+    """The actor module of the run `config` describes and its checkpointed parameters for every member
+    (leaves [G, N, ...]; the latest checkpoint unless `epoch`), without reading the replay buffers."""
+    trainer = make_grid_train(config, make_env(config), jax.devices()[:1])
+    abstract = trainer.abstract_state(config.grid_arrays()[1]).agents.actor
+    mngr = checkpoint.manager(Path(run_dir))
+    try:
+        _, actors = checkpoint.restore(mngr, abstract, item="policy", grid_size=config.grid_size, epoch=epoch)
+    finally:
+        mngr.close()
+    return trainer.networks.actor, actors
 
 
 def load_policy(run_dir: str | Path, member: int = 0, epoch: int | None = None) -> Callable:
@@ -28,14 +41,8 @@ def load_policy(run_dir: str | Path, member: int = 0, epoch: int | None = None) 
     config = Config.from_dict(json.loads((run_dir / "config.json").read_text()))
     if not 0 <= member < config.grid_size:
         raise ValueError(f"member: the run has members 0..{config.grid_size - 1}, got {member}")
-    env = make_env(config)
-    trainer = make_grid_train(config, env, jax.devices()[:1])
-    abstract = trainer.abstract_state(config.grid_arrays()[1]).agents.actor
-    mngr = checkpoint.manager(run_dir)
-    _, actors = checkpoint.restore(mngr, abstract, item="policy", grid_size=config.grid_size, epoch=epoch)
-    mngr.close()
+    actor, actors = load_actors(run_dir, config, epoch)
     params = jax.tree.map(lambda x: x[member], actors)
-    actor = trainer.networks.actor
 
     @jax.jit
     def policy(obs: jax.Array, stage: jax.Array) -> jax.Array:

@@ -17,6 +17,7 @@ import jax
 from ccp_jax import checkpoint
 from ccp_jax.config import Config, ConfigError
 from ccp_jax.networks import Actor
+from ccp_jax.policy import load_actors
 
 
 class Primitives(NamedTuple):
@@ -52,16 +53,7 @@ def primitives_config(config: Config) -> Config:
 
 def load_primitives(config: Config) -> Primitives:
     """The actor parameters of member `config.primitives_member` of the naive run in `config.primitives`."""
-    from ccp_jax.envs import make_env
-    from ccp_jax.trainer import make_grid_train
-
     saved = primitives_config(config)
-    trainer = make_grid_train(saved, make_env(saved), jax.devices()[:1])
-    abstract = trainer.abstract_state(saved.grid_arrays()[1]).agents.actor
-    mngr = checkpoint.manager(Path(config.primitives))
-    try:
-        _, actors = checkpoint.restore(mngr, abstract, item="policy", grid_size=saved.grid_size)
-    finally:
-        mngr.close()
+    actor, actors = load_actors(config.primitives, saved)
     params = jax.tree.map(lambda x: jax.device_get(x[config.primitives_member]), actors)
-    return Primitives(actor=trainer.networks.actor, params=params)
+    return Primitives(actor=actor, params=params)
