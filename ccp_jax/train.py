@@ -207,7 +207,7 @@ def run(config: Config, out: Path, progress: bool = True, resume: bool = False,
     """Trains the grid of `config` in `out`: config.json, metrics.jsonl, summary.json, checkpoints/.
 
     With `resume`, continues from the latest checkpoint in `out`; metrics rows
-    written after that checkpoint are replaced by their (identical) recomputation.
+    written after that checkpoint are replaced by their recomputation (identical on the same device split).
     `members_at_once`: see `GridTrainer` (default: 1 on CPU, the whole grid on accelerators).
     `devices`: what the grid trains on (default: `grid_devices`); a resumed run may use another split
     than its checkpoint's (`checkpoint.restore` pads the grid anew).
