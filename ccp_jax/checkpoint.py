@@ -16,6 +16,7 @@ import numpy as np
 import orbax.checkpoint as ocp
 
 from ccp_jax.config import ConfigError
+from ccp_jax.devices import pad_grid
 
 CHECKPOINT_DIR = "checkpoints"
 
@@ -60,13 +61,10 @@ def save(mngr: ocp.CheckpointManager, epoch: int, state: Any) -> None:
 
 def _repadded(saved: dict[str, np.ndarray], target: dict[str, Any], grid_size: int) -> dict[str, Any]:
     """Host arrays of a grid padded for other devices, cut to its `grid_size` real members and padded again
-    with copies of the last one (what `GridTrainer` pads with) to the leading size of `target`'s leaves,
-    then placed with their shardings."""
-    def one(x: np.ndarray, want: Any) -> Any:
-        x = x[:grid_size]
-        x = np.concatenate([x, np.repeat(x[-1:], want.shape[0] - grid_size, axis=0)])
-        return jax.device_put(x, getattr(want, "sharding", None))
-    return {k: one(saved[k], want) for k, want in target.items()}
+    (`pad_grid`, as `GridTrainer` pads) to the leading size of `target`'s leaves, then placed with their
+    shardings."""
+    return {k: jax.device_put(pad_grid(saved[k][:grid_size], want.shape[0]), getattr(want, "sharding", None))
+            for k, want in target.items()}
 
 
 def _unreadable(folder: Path, epoch: int, steps, err: Exception) -> CheckpointError:

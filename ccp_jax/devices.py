@@ -16,6 +16,7 @@ import os
 from typing import Literal, Sequence, Union
 
 import jax
+import numpy as np
 
 CPU_DEVICES = "xla_force_host_platform_device_count"  # the XLA flag that splits the host CPU into devices
 CpuDevices = Union[int, Literal["auto"]]
@@ -76,3 +77,10 @@ def grid_devices(grid_size: int, devices: Sequence[jax.Device] | None = None,
         return devices
     cores = (cores or available_cores()) if devices[0].platform == "cpu" else None  # accelerators share none
     return devices[: min(range(1, len(devices) + 1), key=lambda d: (epoch_cost(grid_size, d, cores), d))]
+
+
+def pad_grid(x, size: int) -> np.ndarray:
+    """`x` (grid axis first) padded to `size` members with copies of its last: what the slots of a grid that does
+    not divide over its devices hold (their results are dropped)."""
+    x = np.asarray(x)
+    return np.concatenate([x, np.repeat(x[-1:], size - len(x), axis=0)])

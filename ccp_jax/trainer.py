@@ -21,7 +21,7 @@ from ccp_jax import buffer as replay
 from ccp_jax.buffer import ReplayBuffer, Transition
 from ccp_jax.collect import EvalMetrics, make_collect, make_evaluate
 from ccp_jax.config import Config, ConfigError
-from ccp_jax.devices import grid_devices
+from ccp_jax.devices import grid_devices, pad_grid
 from ccp_jax.learner import AgentState, Networks, UpdateMetrics, init_agents, make_learner, make_networks
 from envs_mjx import cpu_compiler_options
 
@@ -188,9 +188,7 @@ class GridTrainer:
                              compiler_options=self.compiler_options or None)
 
     def _pad(self, x) -> jax.Array:
-        x = jnp.asarray(x)
-        extra = jnp.repeat(x[-1:], self.padded_size - self.grid_size, axis=0)
-        return jax.device_put(jnp.concatenate([x, extra]), self.sharding)
+        return jax.device_put(pad_grid(x, self.padded_size), self.sharding)
 
     def init(self, seeds) -> TrainState:
         """States for seeds int[G] (padded to the device count: leaves [G_padded, ...])."""

@@ -1,7 +1,6 @@
 """Checkpoint and resume: identity with an uninterrupted run, crash safety, clear errors."""
 import json
 import shutil
-
 from typing import NamedTuple
 
 import jax
