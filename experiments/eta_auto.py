@@ -3,6 +3,7 @@
     python experiments/eta_auto.py --scale cpu --domains maze2 maze3
     python experiments/eta_auto.py --scale cpu --domains peg --normalisers floor --no-sweep
     python experiments/eta_auto.py --scale cpu --domains maze2 --normalisers --no-sweep --fresh-seeds 12
+    python experiments/eta_auto.py --scale cpu --domains maze3 --normalisers --no-sweep --raw-sum --fresh-seeds 5
 
 Table I's CSAC grid (`table1.py`, same scale and folder) already holds the
 swept ratios and `auto` with the paper's batch normaliser, all on the same
@@ -16,6 +17,11 @@ The best swept ratio is the best of several noisy 3-seed means, so its score
 on the seeds it was picked on is biased upwards (the winner's curse).
 `--fresh-seeds K` trains it and `auto` again on K new seeds, numbered after the
 scale's (<domain>/csac_fresh_seeds/), where neither was picked.
+
+`--raw-sum` adds the objective `auto` stands for without the paper's units:
+η* makes the normalised loss a multiple of Q_n + Q_{n+1}, which raw critics
+give at η = 0.5 (`--normaliser none --eta 0.5`, <domain>/csac_raw_sum/, and
+with `--fresh-seeds` also on the fresh seeds, <domain>/csac_raw_sum_fresh_seeds/).
 """
 from __future__ import annotations
 
@@ -47,7 +53,9 @@ class Args:
     sweep: bool = True
     """First train the swept ratios that Table I's CSAC grid still lacks (on peg: 75 min per ratio on a CPU)."""
     fresh_seeds: int = 0
-    """Also train the best swept ratio and `auto` on this many new seeds (see above)."""
+    """Also train the best swept ratio and `auto` (and the raw sum) on this many new seeds (see above)."""
+    raw_sum: bool = False
+    """Also train the raw sum of the two critics, `--normaliser none --eta 0.5` (see above)."""
     table_only: bool = False
 
 
@@ -58,12 +66,19 @@ def firsts(summary: dict) -> dict[tuple, list]:
     return by_eta
 
 
+def one_variant(summary: dict) -> tuple[list, list]:
+    """(final success per seed, first-success steps per seed) of a run of one ratio."""
+    return next(zip(final_success(summary).values(), firsts(summary).values()))
+
+
 def first_text(values: list) -> str:
     reached = [v for v in values if v is not None]
     return f"{np.mean(reached):,.0f} ({len(reached)}/{len(values)} seeds)" if reached else f"never (0/{len(values)})"
 
 
 FRESH = "csac_fresh_seeds"
+RAW_SUM = "csac_raw_sum"
+RAW_SUM_CHANGES = dict(etas=[(0.5,)], normaliser="none")
 
 
 def fresh_pick(out: Path, domain: str) -> tuple:
@@ -75,11 +90,19 @@ def fresh_pick(out: Path, domain: str) -> tuple:
     return best
 
 
-def train_fresh(scale: Scale, out: Path, domain: str, seeds: int) -> None:
-    """The best swept ratio and `auto` on `seeds` seeds numbered after the scale's, one grid."""
+def train_fresh(scale: Scale, out: Path, domain: str, seeds: int, raw_sum: bool) -> None:
+    """The best swept ratio and `auto` on `seeds` seeds numbered after the scale's, one grid (the raw sum another)."""
     run_grid(scale.config(domain, "csac", etas=[fresh_pick(out, domain)[:1], (AUTO,)], seeds=seeds,
                           first_seed=scale.seeds),
              run_dir(out, domain, FRESH))
+    if raw_sum:
+        run_grid(scale.config(domain, "csac", seeds=seeds, first_seed=scale.seeds, **RAW_SUM_CHANGES),
+                 run_dir(out, domain, f"{RAW_SUM}_fresh_seeds"))
+
+
+def seed_span(summary: dict) -> str:
+    seeds = sorted({m["seed"] for m in summary["members"]})
+    return f"{seeds[0]}–{seeds[-1]}"
 
 
 def domain_rows(out: Path, domain: str) -> list[str]:
@@ -99,14 +122,18 @@ def domain_rows(out: Path, domain: str) -> list[str]:
         if path.exists():
             s = read_json(path)
             label = "auto, no normaliser" if normaliser == "none" else f"auto, {normaliser} normaliser"
-            rows.append((label, *next(zip(final_success(s).values(), firsts(s).values()))))
-    path = run_dir(out, domain, FRESH) / "summary.json"
-    if path.exists():
+            rows.append((label, *one_variant(s)))
+    if (path := run_dir(out, domain, RAW_SUM) / "summary.json").exists():
         s = read_json(path)
-        seeds = sorted({m["seed"] for m in s["members"]})
+        rows.append(("raw sum (no normaliser, η = 0.5)", *one_variant(s)))
+    if (path := run_dir(out, domain, FRESH) / "summary.json").exists():
+        s = read_json(path)
         fresh_first = firsts(s)
         for eta, values in final_success(s).items():
-            rows.append((f"{name(eta)}, fresh seeds {seeds[0]}–{seeds[-1]}", values, fresh_first[eta]))
+            rows.append((f"{name(eta)}, fresh seeds {seed_span(s)}", values, fresh_first[eta]))
+    if (path := run_dir(out, domain, f"{RAW_SUM}_fresh_seeds") / "summary.json").exists():
+        s = read_json(path)
+        rows.append((f"raw sum, fresh seeds {seed_span(s)}", *one_variant(s)))
     return [f"| {domain} | {name} | {mean_std(values)} | {' '.join(f'{v:.2f}' for v in values)} | {first_text(f)} |"
             for name, values, f in rows]
 
@@ -126,8 +153,10 @@ def main(args: Args) -> str:
             for normaliser in args.normalisers:
                 run_grid(scale.config(domain, "csac", etas=[(AUTO,)], normaliser=normaliser),
                          run_dir(out, domain, f"csac_auto_{normaliser}"))
+            if args.raw_sum:
+                run_grid(scale.config(domain, "csac", **RAW_SUM_CHANGES), run_dir(out, domain, RAW_SUM))
             if args.fresh_seeds:
-                train_fresh(scale, out, domain, args.fresh_seeds)
+                train_fresh(scale, out, domain, args.fresh_seeds, args.raw_sum)
     lines = ["| domain | CSAC variant | final success | per seed | env steps to first success |", "|---|---|---|---|---|"]
     for domain in DOMAINS:  # every domain trained in `out`, not only this call's: earlier rows are kept
         lines += domain_rows(out, domain)

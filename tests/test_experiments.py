@@ -227,6 +227,26 @@ def test_fresh_seeds_train_the_best_ratio_and_auto_on_new_seeds_and_add_their_ro
         eta_auto.main(eta_auto.Args(scale="smoke", domains=("maze2",), out=maze2_runs, fresh_seeds=-1))
 
 
+def test_raw_sum_trains_none_at_eta_half_on_the_scales_and_the_fresh_seeds_and_adds_its_rows(maze2_runs, monkeypatch):
+    import eta_auto
+
+    calls = []
+    monkeypatch.setattr(eta_auto, "run_grid", lambda config, out: calls.append((config, out)))
+    eta_auto.main(eta_auto.Args(scale="smoke", domains=("maze2",), normalisers=(), out=maze2_runs, sweep=False,
+                                raw_sum=True, fresh_seeds=3))
+    (raw, raw_dir), (_, fresh_dir), (raw_fresh, raw_fresh_dir) = calls
+    assert [raw_dir.name, fresh_dir.name, raw_fresh_dir.name] == ["csac_raw_sum", "csac_fresh_seeds",
+                                                                   "csac_raw_sum_fresh_seeds"]
+    for config, seeds in ((raw, (0, 1)), (raw_fresh, (2, 3, 4))):
+        assert config.etas == ((0.5,),) and config.normaliser == "none" and config.seeds == seeds
+    assert raw_fresh.differing(raw) == ["seeds"]  # the same experiment on other seeds
+    _fake_run(raw_dir, raw, {0: [1, 1], 1: [0, 1]})
+    _fake_run(raw_fresh_dir, raw_fresh, {0: [0, 0], 1: [0, 1], 2: [1, 1]})
+    rows = eta_auto.domain_rows(maze2_runs, "maze2")
+    assert rows[-2:] == ["| maze2 | raw sum (no normaliser, η = 0.5) | 0.75 ± 0.25 | 1.00 0.50 | 300 (2/2 seeds) |",
+                         "| maze2 | raw sum, fresh seeds 2–4 | 0.50 ± 0.41 | 0.00 0.50 1.00 | 300 (2/3 seeds) |"]
+
+
 def test_fresh_seeds_without_a_sweep_to_pick_from_fail_before_any_grid_trains(maze2_runs, monkeypatch):
     import eta_auto
 
