@@ -77,7 +77,7 @@ def first_text(values: list) -> str:
 
 
 FRESH = "csac_fresh_seeds"
-RAW_SUM = "csac_raw_sum"
+RAW_SUM, RAW_SUM_FRESH = "csac_raw_sum", "csac_raw_sum_fresh_seeds"
 RAW_SUM_CHANGES = dict(etas=[(0.5,)], normaliser="none")
 
 
@@ -97,7 +97,7 @@ def train_fresh(scale: Scale, out: Path, domain: str, seeds: int, raw_sum: bool)
              run_dir(out, domain, FRESH))
     if raw_sum:
         run_grid(scale.config(domain, "csac", seeds=seeds, first_seed=scale.seeds, **RAW_SUM_CHANGES),
-                 run_dir(out, domain, f"{RAW_SUM}_fresh_seeds"))
+                 run_dir(out, domain, RAW_SUM_FRESH))
 
 
 def seed_span(summary: dict) -> str:
@@ -131,7 +131,7 @@ def domain_rows(out: Path, domain: str) -> list[str]:
         fresh_first = firsts(s)
         for eta, values in final_success(s).items():
             rows.append((f"{name(eta)}, fresh seeds {seed_span(s)}", values, fresh_first[eta]))
-    if (path := run_dir(out, domain, f"{RAW_SUM}_fresh_seeds") / "summary.json").exists():
+    if (path := run_dir(out, domain, RAW_SUM_FRESH) / "summary.json").exists():
         s = read_json(path)
         rows.append((f"raw sum, fresh seeds {seed_span(s)}", *one_variant(s)))
     return [f"| {domain} | {name} | {mean_std(values)} | {' '.join(f'{v:.2f}' for v in values)} | {first_text(f)} |"
