@@ -105,8 +105,18 @@ def seed_span(summary: dict) -> str:
     return f"{seeds[0]}–{seeds[-1]}"
 
 
+def one_variant_rows(out: Path, domain: str, folder: str, label: str) -> list[tuple]:
+    """The row of the one-ratio run in <domain>/<folder> (`{seeds}` in `label` becomes its seeds); none if unfinished."""
+    path = run_dir(out, domain, folder) / "summary.json"
+    if not path.exists():
+        return []
+    s = read_json(path)
+    return [(label.format(seeds=seed_span(s)), *one_variant(s))]
+
+
 def domain_rows(out: Path, domain: str) -> list[str]:
-    """Markdown rows: the best swept ratio, auto (batch), auto with each other normaliser, then both on fresh seeds."""
+    """Markdown rows: the best swept ratio, auto (batch), auto with each other normaliser, the raw sum, then the
+    best ratio and auto on fresh seeds, and the raw sum on them."""
     swept = merged_summary(swept_runs(out, domain))
     if swept is None:
         return []
@@ -118,22 +128,15 @@ def domain_rows(out: Path, domain: str) -> list[str]:
     if auto := next((eta for eta in success if AUTO in eta), None):
         rows.append((name(auto), success[auto], first[auto]))
     for normaliser in NORMALISERS:
-        path = run_dir(out, domain, f"csac_auto_{normaliser}") / "summary.json"
-        if path.exists():
-            s = read_json(path)
-            label = "auto, no normaliser" if normaliser == "none" else f"auto, {normaliser} normaliser"
-            rows.append((label, *one_variant(s)))
-    if (path := run_dir(out, domain, RAW_SUM) / "summary.json").exists():
-        s = read_json(path)
-        rows.append(("raw sum (no normaliser, η = 0.5)", *one_variant(s)))
+        label = "auto, no normaliser" if normaliser == "none" else f"auto, {normaliser} normaliser"
+        rows += one_variant_rows(out, domain, f"csac_auto_{normaliser}", label)
+    rows += one_variant_rows(out, domain, RAW_SUM, "raw sum (no normaliser, η = 0.5)")
     if (path := run_dir(out, domain, FRESH) / "summary.json").exists():
         s = read_json(path)
         fresh_first = firsts(s)
         for eta, values in final_success(s).items():
             rows.append((f"{name(eta)}, fresh seeds {seed_span(s)}", values, fresh_first[eta]))
-    if (path := run_dir(out, domain, RAW_SUM_FRESH) / "summary.json").exists():
-        s = read_json(path)
-        rows.append((f"raw sum, fresh seeds {seed_span(s)}", *one_variant(s)))
+    rows += one_variant_rows(out, domain, RAW_SUM_FRESH, "raw sum, fresh seeds {seeds}")
     return [f"| {domain} | {name} | {mean_std(values)} | {' '.join(f'{v:.2f}' for v in values)} | {first_text(f)} |"
             for name, values, f in rows]
 
