@@ -1,22 +1,26 @@
-"""The 2-room maze at five times the `cpu` scale's budget: do CSAC's traps let go given more steps?
+"""The maze at several times the `cpu` scale's budget: do CSAC's traps let go given more steps?
 
-    python experiments/long_budget.py                 # trains (or resumes) the grids, then the table and figure
+    python experiments/long_budget.py                 # 2 rooms: trains (or resumes) the grids, then table and figure
+    python experiments/long_budget.py --rooms 3       # 3 rooms
     python experiments/long_budget.py --plot-only     # table and figure from the runs as they stand
 
 SPEC §7's yardstick settings (the `cpu` scale: [64, 64] nets, the paper's epoch,
-buffers of 2e5), seeds 0–5, 750 k env steps (a quarter of the paper's 3 M; the
-`cpu` scale's Table I gives the 2-room maze 150 k): CSAC with η = 0.1 (the
-paper's best 2-room ratio and SPEC §7's) and `auto`, both with the paper's batch
+buffers of 2e5). 2 rooms (`long_2room/`): seeds 0–5, 750 k env steps (a quarter
+of the paper's 3 M, 5x the `cpu` scale's 150 k): CSAC with η = 0.1 (the paper's
+best 2-room ratio and SPEC §7's) and `auto`, both with the paper's batch
 normaliser (one grid, csac_batch/), `auto` with the floor normaliser
 (csac_auto_floor/), and η = 0.5, the `cpu` sweep's best ratio (csac_eta_0.5/).
-Writes into the results folder: table.md (mean success at SPEC §7's milestones
-beside its prototype's, then per seed the final success, the first success and
-where the last evaluations end) and success.png.
+3 rooms (`long_3room/`): seeds 0–2, 600 k (2x the `cpu` scale's 300 k): η = 0.1
+(the paper's best), η = 0.3 (the `cpu` sweep's best) and `auto`, one grid
+(csac_batch/). Writes into the results folder: table.md (mean success at the
+milestones, for 2 rooms beside SPEC §7's prototype, then per seed the final
+success, the first success and where the last evaluations end) and success.png.
 """
 from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import Literal, Optional
 
 import numpy as np
 
@@ -24,11 +28,30 @@ from ccp_jax import plot
 from ccp_jax.config import AUTO
 from common import SCALES, ScaleName, cli, final_ends, fmt, mean_std, read_json, run_grid, success_at, write_text
 
-# Run folder -> (ratio grid, config changes); each holds seeds 0..seeds-1. η = 0.5 is the `cpu` scale's best
-# swept 2-room ratio (Table I at 150 k), η = 0.1 the paper's.
-RUNS = {"csac_batch": (((0.1,), (AUTO,)), {}),
-        "csac_auto_floor": (((AUTO,),), {"normaliser": "floor"}),
-        "csac_eta_0.5": (((0.5,),), {})}
+
+
+@dataclasses.dataclass(frozen=True)
+class Plan:
+    """One maze's long runs: run folder -> (ratio grid, config changes), each on seeds 0..seeds-1."""
+
+    runs: dict[str, tuple[tuple, dict]]
+    seeds: int
+    total_steps: int
+    milestones: tuple[int, ...]
+
+
+# η = 0.1 is the paper's best ratio on 2 and 3 rooms; 0.5 and 0.3 the `cpu` scale's best swept ones (Table I at
+# 150 k and 300 k).
+PLANS = {
+    2: Plan(runs={"csac_batch": (((0.1,), (AUTO,)), {}),
+                  "csac_auto_floor": (((AUTO,),), {"normaliser": "floor"}),
+                  "csac_eta_0.5": (((0.5,),), {})},
+            seeds=6, total_steps=750_000,
+            milestones=(50_000, 100_000, 150_000, 200_000, 250_000, 300_000, 400_000, 515_000, 600_000, 750_000)),
+    3: Plan(runs={"csac_batch": (((0.1,), (0.3,), (AUTO,)), {})},
+            seeds=3, total_steps=600_000,
+            milestones=(100_000, 200_000, 300_000, 400_000, 500_000, 600_000)),
+}
 # SPEC §7: the prototype's mean success (CSAC η = 0.1, 3 seeds) at these env steps; 0.93–1.00 from 250 k to 515 k.
 PROTOTYPE = {100_000: 0.03, 150_000: 0.33, 200_000: 0.77}
 PROTOTYPE_PLATEAU = (250_000, 515_000, 0.93, 1.00)
@@ -36,15 +59,26 @@ PROTOTYPE_PLATEAU = (250_000, 515_000, 0.93, 1.00)
 
 @dataclasses.dataclass
 class Args:
+    rooms: Literal[2, 3] = 2
     scale: ScaleName = "cpu"
-    seeds: int = 6
-    total_steps: int = 750_000
-    milestones: tuple[int, ...] = (50_000, 100_000, 150_000, 200_000, 250_000, 300_000, 400_000, 515_000,
-                                   600_000, 750_000)
-    """Env steps at which the table gives the mean success over seeds (single evaluations)."""
-    out: Path = Path("experiments/results/long_2room")
+    seeds: Optional[int] = None
+    """Seeds 0..seeds-1 per run; default the plan's (2 rooms: 6, 3 rooms: 3)."""
+    total_steps: Optional[int] = None
+    """Default the plan's (2 rooms: 750 k, 3 rooms: 600 k)."""
+    milestones: Optional[tuple[int, ...]] = None
+    """Env steps at which the table gives the mean success over seeds (single evaluations); default the plan's."""
+    out: Optional[Path] = None
+    """Default experiments/results/long_<rooms>room."""
     plot_only: bool = False
     """Never train: table and figure from whatever the folders hold (unfinished runs too)."""
+
+    @property
+    def plan(self) -> Plan:
+        return PLANS[self.rooms]
+
+    @property
+    def folder(self) -> Path:
+        return self.out or Path(f"experiments/results/long_{self.rooms}room")
 
 
 def variant(eta: tuple, changes: dict) -> str:
@@ -59,10 +93,10 @@ def prototype(steps: int) -> str:
     return f"{low:.2f}–{high:.2f}" if start <= steps <= end else "–"
 
 
-def load(out: Path) -> dict[str, dict]:
+def load(out: Path, runs: dict[str, tuple[tuple, dict]]) -> dict[str, dict]:
     """{variant: {"curves": [(steps, success)] per member, "members": summary members or None, "ends": ...}}."""
     found = {}
-    for folder, (_, changes) in RUNS.items():
+    for folder, (_, changes) in runs.items():
         run = out / folder
         if not (run / "metrics.jsonl").exists():
             continue
@@ -75,58 +109,64 @@ def load(out: Path) -> dict[str, dict]:
     return dict(sorted(found.items(), key=lambda item: item[0].startswith("auto")))  # numeric ratios first
 
 
-def milestone_table(found: dict[str, dict], milestones: tuple[int, ...]) -> list[str]:
-    lines = ["| env steps | SPEC §7 prototype (η = 0.1, 3 seeds) | " + " | ".join(found) + " |",
-             "|---" * (2 + len(found)) + "|"]
+def milestone_table(found: dict[str, dict], milestones: tuple[int, ...], with_prototype: bool) -> list[str]:
+    """Mean success over seeds at each milestone; with SPEC §7's prototype column (a 2-room yardstick)."""
+    head = ["env steps"] + ["SPEC §7 prototype (η = 0.1, 3 seeds)"] * with_prototype + list(found)
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
     for steps in milestones:
-        cells = []
+        cells = [f"{steps:,}"] + [prototype(steps)] * with_prototype
         for v in found.values():
             at = success_at(v["curves"], steps)
             cells.append(f"{np.mean(at):.2f} ({len(at)})" if at else "–")
-        lines.append(f"| {steps:,} | {prototype(steps)} | " + " | ".join(cells) + " |")
+        lines.append("| " + " | ".join(cells) + " |")
     return lines
 
 
 def seed_table(found: dict[str, dict]) -> list[str]:
-    lines = ["| variant | final success | per seed | first success (env steps) | last evaluations end in: "
-             "room 2 (fraction in the pocket) |", "|---|---|---|---|---|"]
+    lines = ["| variant | final success | per seed | first success (env steps) | room the last evaluations end "
+             "in, mean (fraction in a pocket) |", "|---|---|---|---|---|"]
     for name, v in found.items():
         if not v["members"]:
             continue
         finals = [m["final_success"] for m in v["members"]]
         firsts = " ".join("never" if m["first_success_env_steps"] is None else f"{m['first_success_env_steps']:,}"
                           for m in v["members"])
-        ends = " ".join(f"{stage - 1:.2f} ({fmt(pocket)})" for stage, pocket in v["ends"])
+        ends = " ".join(f"{stage:.2f} ({fmt(pocket)})" for stage, pocket in v["ends"])
         lines.append(f"| {name} | {mean_std(finals)} | {' '.join(f'{x:.2f}' for x in finals)} | {firsts} | {ends} |")
     return lines
 
 
-def figure(found: dict[str, dict], path: Path) -> None:
-    groups = {("maze-2", name, ()): v["curves"] for name, v in found.items()}
-    ax = plot.curves(groups, title="2-room maze, [64, 64]").axes[0]
-    ax.plot(list(PROTOTYPE), list(PROTOTYPE.values()), "ko--", label="SPEC §7 prototype, η = 0.1 (3 seeds)")
-    start, end, low, high = PROTOTYPE_PLATEAU
-    ax.fill_between([start, end], low, high, color="k", alpha=0.25, linewidth=0)
-    ax.legend(fontsize="small")
+def figure(found: dict[str, dict], rooms: int, path: Path) -> None:
+    groups = {(f"maze-{rooms}", name, ()): v["curves"] for name, v in found.items()}
+    ax = plot.curves(groups, title=f"{rooms}-room maze, [64, 64]").axes[0]
+    if rooms == 2:
+        ax.plot(list(PROTOTYPE), list(PROTOTYPE.values()), "ko--", label="SPEC §7 prototype, η = 0.1 (3 seeds)")
+        start, end, low, high = PROTOTYPE_PLATEAU
+        ax.fill_between([start, end], low, high, color="k", alpha=0.25, linewidth=0)
+        ax.legend(fontsize="small")
     ax.figure.savefig(path)
 
 
 def main(args: Args) -> str:
-    scale = SCALES[args.scale]
+    scale, plan, out = SCALES[args.scale], args.plan, args.folder
     if not args.plot_only:
-        for folder, (etas, changes) in RUNS.items():
-            run_grid(scale.config("maze2", "csac", etas=etas, seeds=args.seeds, total_steps=args.total_steps,
-                                  **changes), args.out / folder)
-    found = load(args.out)
+        seeds = plan.seeds if args.seeds is None else args.seeds
+        total_steps = plan.total_steps if args.total_steps is None else args.total_steps
+        for folder, (etas, changes) in plan.runs.items():
+            run_grid(scale.config(f"maze{args.rooms}", "csac", etas=etas, seeds=seeds, total_steps=total_steps,
+                                  **changes), out / folder)
+    found = load(out, plan.runs)
     if not found:
-        raise SystemExit(f"error: out: no runs in {args.out}; train them first (without --plot-only)")
-    episodes = read_json(args.out / next(iter(RUNS)) / "config.json")["eval_episodes"]
+        raise SystemExit(f"error: out: no runs in {out.resolve()}; train them first (without --plot-only)")
+    episodes = read_json(out / next(iter(plan.runs)) / "config.json")["eval_episodes"]
+    milestones = args.milestones or plan.milestones
     text = ("Mean evaluation success over seeds (in parentheses: seeds that reached that step), single evaluations "
-            f"of {episodes} deterministic episodes:\n\n" + "\n".join(milestone_table(found, args.milestones))
+            f"of {episodes} deterministic episodes:\n\n"
+            + "\n".join(milestone_table(found, milestones, with_prototype=args.rooms == 2))
             + "\n\nPer seed (seeds in order; final success = mean of the last 10 evaluations):\n\n"
             + "\n".join(seed_table(found)) + "\n")
-    write_text(args.out / "table.md", text)
-    figure(found, args.out / "success.png")
+    write_text(out / "table.md", text)
+    figure(found, args.rooms, out / "success.png")
     print(text)
     return text
 

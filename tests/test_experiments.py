@@ -335,9 +335,27 @@ def test_long_budget_trains_its_grids_then_tables_success_at_milestones_and_per_
     assert "| 600 | – | 0.50 (2) | 1.00 (2) | 1.00 (2) | 1.00 (2) |" in lines
     assert "| 150,000 | 0.33 | – | – | – | – |" in lines  # the prototype's value; no run got there
     # a success ends in room 2 and a failure in the pocket (see _fake_run)
-    assert "| CSAC η = 0.1 | 0.33 ± 0.33 | 0.67 0.00 | 400 never | 0.67 (0.33) 0.00 (1.00) |" in lines
-    assert "| auto, floor normaliser | 0.67 ± 0.33 | 0.33 1.00 | 600 200 | 0.33 (0.67) 1.00 (0.00) |" in lines
+    # the mean 1-based room the last evaluations end in (a success in room 2, a failure in room 1 and the pocket)
+    assert "| CSAC η = 0.1 | 0.33 ± 0.33 | 0.67 0.00 | 400 never | 1.67 (0.33) 1.00 (1.00) |" in lines
+    assert "| auto, floor normaliser | 0.67 ± 0.33 | 0.33 1.00 | 600 200 | 1.33 (0.67) 2.00 (0.00) |" in lines
     assert (tmp_path / "success.png").stat().st_size > 0 and (tmp_path / "table.md").read_text().splitlines() == lines
+
+
+def test_long_budget_on_three_rooms_trains_its_ratios_in_one_grid_without_the_prototype(tmp_path, monkeypatch):
+    calls = []
+    monkeypatch.setattr(long_budget, "run_grid", lambda config, out: calls.append((config, out)))
+    args = long_budget.Args(rooms=3, scale="smoke", total_steps=400, milestones=(200, 400), out=tmp_path)
+    with pytest.raises(SystemExit, match="^error: out: no runs in"):
+        long_budget.main(args)
+    ((grid, grid_dir),) = calls
+    assert (grid_dir, grid.rooms, grid.etas) == (tmp_path / "csac_batch", 3, ((0.1,), (0.3,), ("auto",)))
+    assert (grid.seeds, grid.total_steps, grid.normaliser) == ((0, 1, 2), 400, "batch")  # the plan's 3 seeds
+    assert long_budget.Args(rooms=3).folder == Path("experiments/results/long_3room")
+    _fake_run(grid_dir, grid, {m: [0, 1] if m == 3 else [0, 0] for m in range(9)})  # member 3: η = 0.3, seed 0
+    lines = long_budget.main(dataclasses.replace(args, plot_only=True)).splitlines()
+    assert "| env steps | CSAC η = 0.1 | CSAC η = 0.3 | auto, batch normaliser |" in lines  # no prototype column
+    assert "| 400 | 0.00 (3) | 0.33 (3) | 0.00 (3) |" in lines
+    assert "| CSAC η = 0.3 | 0.17 ± 0.24 | 0.50 0.00 0.00 | 400 never never | 2.00 (0.50) 1.00 (1.00) 1.00 (1.00) |" in lines
 
 
 def test_compare_pools_folders_per_variant_and_tests_each_row_against_the_first(tmp_path):
