@@ -88,12 +88,14 @@ SCALES = {
                    total_steps={"maze2": 400, "maze3": 400, "maze4": 400, "peg": 200, "pusher": 200}),
 }
 ScaleName = Literal[tuple(SCALES)]  # the keys of SCALES, as a CLI choice (tyro reads it at run time)
+# Where the scripts keep their results by default: this folder's results/, wherever they are run from.
+RESULTS = Path(__file__).resolve().parent / "results"
 
 
 def results_folder(out: Optional[Path], name: str, scale: str, domains: Sequence[str] = ()) -> Path:
-    """`out`, or experiments/results/<name>_<scale>; exits with a message naming an unknown domain."""
+    """`out`, or experiments/results/<name>_<scale> (`RESULTS`); exits with a message naming an unknown domain."""
     check_domains(domains)
-    return out or Path("experiments/results") / f"{name}_{scale}"
+    return out or RESULTS / f"{name}_{scale}"
 
 
 def check_domains(domains: Sequence[str]) -> None:

@@ -86,7 +86,8 @@ def fresh_pick(out: Path, domain: str) -> tuple:
     swept = merged_summary(swept_runs(out, domain))
     best = swept and best_swept_eta(swept)
     if not best:
-        raise SystemExit(f"error: fresh_seeds: {domain} has no finished swept ratio to pick the best from")
+        raise SystemExit(f"error: fresh_seeds: {domain} has no finished swept ratio in {out / domain} to pick the best "
+                         "from; train the sweep first (table1.py)")
     return best
 
 

@@ -26,7 +26,7 @@ import numpy as np
 
 from ccp_jax import plot
 from ccp_jax.config import AUTO
-from common import SCALES, ScaleName, cli, final_ends, fmt, mean_std, read_json, run_grid, success_at, write_text
+from common import RESULTS, SCALES, ScaleName, cli, final_ends, fmt, mean_std, read_json, run_grid, success_at, write_text
 
 
 
@@ -78,7 +78,7 @@ class Args:
 
     @property
     def folder(self) -> Path:
-        return self.out or Path(f"experiments/results/long_{self.rooms}room")
+        return self.out or RESULTS / f"long_{self.rooms}room"
 
 
 def variant(eta: tuple, changes: dict) -> str:

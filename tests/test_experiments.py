@@ -252,10 +252,18 @@ def test_fresh_seeds_without_a_sweep_to_pick_from_fail_before_any_grid_trains(ma
 
     calls = []
     monkeypatch.setattr(eta_auto, "run_grid", lambda config, out: calls.append(out))
-    with pytest.raises(SystemExit, match="^error: fresh_seeds: maze3 has no finished swept ratio"):
+    with pytest.raises(SystemExit, match="^error: fresh_seeds: maze3 has no finished swept ratio") as err:
         eta_auto.main(eta_auto.Args(scale="smoke", domains=("maze2", "maze3"), normalisers=("floor",),
                                     out=maze2_runs, sweep=False, fresh_seeds=2))
+    assert f"in {maze2_runs / 'maze3'} " in str(err.value)  # where it looked
     assert calls == []  # not even maze2's floor grid, which comes first
+
+
+def test_default_results_folders_do_not_depend_on_the_working_directory(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    expected = Path(common.__file__).resolve().parent / "results"
+    assert common.results_folder(None, "table1", "cpu") == expected / "table1_cpu"
+    assert common.results_folder(tmp_path / "x", "table1", "cpu") == tmp_path / "x"  # --out as given
 
 
 def test_tp_primitives_are_the_naive_member_that_got_furthest():
@@ -350,7 +358,7 @@ def test_long_budget_on_three_rooms_trains_its_ratios_in_one_grid_without_the_pr
     ((grid, grid_dir),) = calls
     assert (grid_dir, grid.rooms, grid.etas) == (tmp_path / "csac_batch", 3, ((0.1,), (0.3,), ("auto",)))
     assert (grid.seeds, grid.total_steps, grid.normaliser) == ((0, 1, 2), 400, "batch")  # the plan's 3 seeds
-    assert long_budget.Args(rooms=3).folder == Path("experiments/results/long_3room")
+    assert long_budget.Args(rooms=3).folder == Path(long_budget.__file__).parent / "results" / "long_3room"
     _fake_run(grid_dir, grid, {m: [0, 1] if m == 3 else [0, 0] for m in range(9)})  # member 3: η = 0.3, seed 0
     lines = long_budget.main(dataclasses.replace(args, plot_only=True)).splitlines()
     assert "| env steps | CSAC η = 0.1 | CSAC η = 0.3 | auto, batch normaliser |" in lines  # no prototype column

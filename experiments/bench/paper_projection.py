@@ -38,7 +38,7 @@ import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import SCALES, ScaleName, check_domains  # noqa: E402
+from common import RESULTS, SCALES, ScaleName, check_domains  # noqa: E402
 from timed import TimedGrid  # noqa: E402
 
 from ccp_jax.config import Config  # noqa: E402
@@ -116,7 +116,7 @@ def main(args: Args) -> None:
         raise SystemExit(f"error: epochs: must be >= 1, got {args.epochs}")
     check_domains(args.domains)
     platform = jax.devices()[0].platform
-    out = args.out or Path("experiments/results/bench") / f"paper_projection_{args.scale}_{platform}.jsonl"
+    out = args.out or RESULTS / "bench" / f"paper_projection_{args.scale}_{platform}.jsonl"
     out.parent.mkdir(parents=True, exist_ok=True)
     print(f"scale {args.scale}, devices {jax.devices()}; {args.epochs} warm epochs per program -> {out}", flush=True)
     rows = []
