@@ -12,7 +12,8 @@ normaliser (one grid, csac_batch/), `auto` with the floor normaliser
 (csac_auto_floor/), and η = 0.5, the `cpu` sweep's best ratio (csac_eta_0.5/).
 3 rooms (`long_3room/`): seeds 0–2, 600 k (2x the `cpu` scale's 300 k): η = 0.1
 (the paper's best), η = 0.3 (the `cpu` sweep's best) and `auto`, one grid
-(csac_batch/). Writes into the results folder: table.md (mean success at the
+(csac_batch/), then η = 0.3 and `auto` with one temperature for actor and critic
+(`--coop-scale own`, the best 2-room variant; csac_own_scale/). Writes into the results folder: table.md (mean success at the
 milestones, for 2 rooms beside SPEC §7's prototype, then per seed the final
 success, the first success and where the last evaluations end) and success.png.
 """
@@ -48,7 +49,8 @@ PLANS = {
                   "csac_eta_0.5": (((0.5,),), {})},
             seeds=6, total_steps=750_000,
             milestones=(50_000, 100_000, 150_000, 200_000, 250_000, 300_000, 400_000, 515_000, 600_000, 750_000)),
-    3: Plan(runs={"csac_batch": (((0.1,), (0.3,), (AUTO,)), {})},
+    3: Plan(runs={"csac_batch": (((0.1,), (0.3,), (AUTO,)), {}),
+                  "csac_own_scale": (((0.3,), (AUTO,)), {"coop_scale": "own"})},
             seeds=3, total_steps=600_000,
             milestones=(100_000, 200_000, 300_000, 400_000, 500_000, 600_000)),
 }
@@ -82,8 +84,9 @@ class Args:
 
 
 def variant(eta: tuple, changes: dict) -> str:
-    """A row's name: "CSAC η = 0.1", or "auto, floor normaliser"."""
-    return f"auto, {changes.get('normaliser', 'batch')} normaliser" if AUTO in eta else f"CSAC η = {eta[0]:g}"
+    """A row's name: "CSAC η = 0.1", "auto, floor normaliser", "CSAC η = 0.3, one temperature"."""
+    name = f"auto, {changes.get('normaliser', 'batch')} normaliser" if AUTO in eta else f"CSAC η = {eta[0]:g}"
+    return name + (", one temperature" if changes.get("coop_scale") == "own" else "")
 
 
 def prototype(steps: int) -> str:

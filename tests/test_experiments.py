@@ -355,14 +355,18 @@ def test_long_budget_on_three_rooms_trains_its_ratios_in_one_grid_without_the_pr
     args = long_budget.Args(rooms=3, scale="smoke", total_steps=400, milestones=(200, 400), out=tmp_path)
     with pytest.raises(SystemExit, match="^error: out: no runs in"):
         long_budget.main(args)
-    ((grid, grid_dir),) = calls
+    (grid, grid_dir), (own, own_dir) = calls
     assert (grid_dir, grid.rooms, grid.etas) == (tmp_path / "csac_batch", 3, ((0.1,), (0.3,), ("auto",)))
-    assert (grid.seeds, grid.total_steps, grid.normaliser) == ((0, 1, 2), 400, "batch")  # the plan's 3 seeds
+    assert (grid.seeds, grid.total_steps, grid.coop_scale) == ((0, 1, 2), 400, "unit")  # the plan's 3 seeds
+    assert (own_dir.name, own.etas, own.coop_scale, own.seeds) == ("csac_own_scale", ((0.3,), ("auto",)), "own",
+                                                                    (0, 1, 2))
     assert long_budget.Args(rooms=3).folder == Path(long_budget.__file__).parent / "results" / "long_3room"
     _fake_run(grid_dir, grid, {m: [0, 1] if m == 3 else [0, 0] for m in range(9)})  # member 3: η = 0.3, seed 0
+    _fake_run(own_dir, own, {m: [1, 1] for m in range(6)})
     lines = long_budget.main(dataclasses.replace(args, plot_only=True)).splitlines()
-    assert "| env steps | CSAC η = 0.1 | CSAC η = 0.3 | auto, batch normaliser |" in lines  # no prototype column
-    assert "| 400 | 0.00 (3) | 0.33 (3) | 0.00 (3) |" in lines
+    assert ("| env steps | CSAC η = 0.1 | CSAC η = 0.3 | CSAC η = 0.3, one temperature | auto, batch normaliser "
+            "| auto, batch normaliser, one temperature |") in lines  # no prototype column
+    assert "| 400 | 0.00 (3) | 0.33 (3) | 1.00 (3) | 0.00 (3) | 1.00 (3) |" in lines
     assert "| CSAC η = 0.3 | 0.17 ± 0.24 | 0.50 0.00 0.00 | 400 never never | 2.00 (0.50) 1.00 (1.00) 1.00 (1.00) |" in lines
 
 
