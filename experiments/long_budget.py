@@ -13,9 +13,10 @@ normaliser (one grid, csac_batch/), `auto` with the floor normaliser
 3 rooms (`long_3room/`): seeds 0–2, 600 k (2x the `cpu` scale's 300 k): η = 0.1
 (the paper's best), η = 0.3 (the `cpu` sweep's best) and `auto`, one grid
 (csac_batch/), then η = 0.3 and `auto` with one temperature for actor and critic
-(`--coop-scale own`, the best 2-room variant; csac_own_scale/). Writes into the results folder: table.md (mean success at the
-milestones, for 2 rooms beside SPEC §7's prototype, then per seed the final
-success, the first success and where the last evaluations end) and success.png.
+(`--coop-scale own`, the best 2-room variant; csac_own_scale/). Writes into the
+results folder: table.md (mean success at the milestones, for 2 rooms beside
+SPEC §7's prototype, then per seed the final success, the first success and
+where the last evaluations end) and success.png.
 """
 from __future__ import annotations
 
@@ -27,8 +28,8 @@ import numpy as np
 
 from ccp_jax import plot
 from ccp_jax.config import AUTO
-from common import RESULTS, SCALES, ScaleName, cli, final_ends, fmt, mean_std, read_json, run_grid, success_at, write_text
-
+from common import (RESULTS, SCALES, ScaleName, cli, final_ends, fmt, mean_std, read_json, run_grid, success_at,
+                    write_text)
 
 
 @dataclasses.dataclass(frozen=True)
