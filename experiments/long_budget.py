@@ -2,6 +2,7 @@
 
     python experiments/long_budget.py                 # 2 rooms: trains (or resumes) the grids, then table and figure
     python experiments/long_budget.py --rooms 3       # 3 rooms
+    python experiments/long_budget.py --rooms 3 --runs csac_own_scale --first-seed 3   # its seeds 3-5 too
     python experiments/long_budget.py --plot-only     # table and figure from the runs as they stand
 
 SPEC §7's yardstick settings (the `cpu` scale: [64, 64] nets, the paper's epoch,
@@ -16,7 +17,9 @@ normaliser (one grid, csac_batch/), `auto` with the floor normaliser
 (`--coop-scale own`, the best 2-room variant; csac_own_scale/). Writes into the
 results folder: table.md (mean success at the milestones, for 2 rooms beside
 SPEC §7's prototype, then per seed the final success, the first success and
-where the last evaluations end) and success.png.
+where the last evaluations end) and success.png. `--first-seed K` trains seeds K.. of the
+same runs into folders of their own (`<run>_seeds<K>to<K+seeds-1>/`); the table and figure
+pool every seed folder of a run.
 """
 from __future__ import annotations
 
@@ -65,11 +68,15 @@ class Args:
     rooms: Literal[2, 3] = 2
     scale: ScaleName = "cpu"
     seeds: Optional[int] = None
-    """Seeds 0..seeds-1 per run; default the plan's (2 rooms: 6, 3 rooms: 3)."""
+    """Seeds per run, from first_seed on; default the plan's (2 rooms: 6, 3 rooms: 3)."""
+    first_seed: int = 0
+    """Above 0: more seeds of the same runs, each into <run>_seeds<first>to<last>/ beside the plan's."""
     total_steps: Optional[int] = None
     """Default the plan's (2 rooms: 750 k, 3 rooms: 600 k)."""
     milestones: Optional[tuple[int, ...]] = None
     """Env steps at which the table gives the mean success over seeds (single evaluations); default the plan's."""
+    runs: Optional[tuple[str, ...]] = None
+    """Train only these of the plan's run folders (default all); the table and figure show every one found."""
     out: Optional[Path] = None
     """Default experiments/results/long_<rooms>room."""
     plot_only: bool = False
@@ -82,6 +89,18 @@ class Args:
     @property
     def folder(self) -> Path:
         return self.out or RESULTS / f"long_{self.rooms}room"
+
+    def run_folder(self, run: str, seeds: int) -> Path:
+        """Where `run` trains its seeds: the plan's folder, or a seed-range folder beside it."""
+        if not self.first_seed:
+            return self.folder / run
+        return self.folder / f"{run}_seeds{self.first_seed}to{self.first_seed + seeds - 1}"
+
+
+def seed_folders(out: Path, run: str) -> list[Path]:
+    """`run`'s folder and its `--first-seed` folders (`<run>_seeds<a>to<b>`), lowest seed first."""
+    extra = sorted(out.glob(f"{run}_seeds*to*"), key=lambda p: int(p.name[len(run) + 6:].split("to")[0]))
+    return [out / run] + extra
 
 
 def variant(eta: tuple, changes: dict) -> str:
@@ -98,18 +117,21 @@ def prototype(steps: int) -> str:
 
 
 def load(out: Path, runs: dict[str, tuple[tuple, dict]]) -> dict[str, dict]:
-    """{variant: {"curves": [(steps, success)] per member, "members": summary members or None, "ends": ...}}."""
+    """{variant: {"curves": [(steps, success)] per member, "members": finished members' summaries, "ends": ...}}."""
     found = {}
     for folder, (_, changes) in runs.items():
-        run = out / folder
-        if not (run / "metrics.jsonl").exists():
-            continue
-        summary = read_json(run / "summary.json") if (run / "summary.json").exists() else None
-        ends = final_ends(run) if summary else {}
-        for (_, _, eta), series in plot.load_curves([run]).items():
-            members = summary and [m for m in summary["members"] if tuple(m["eta"]) == eta]
-            found[variant(eta, changes)] = dict(curves=series, members=members,
-                                               ends=members and [ends[m["member"]] for m in members])
+        for run in seed_folders(out, folder):
+            if not (run / "metrics.jsonl").exists():
+                continue
+            summary = read_json(run / "summary.json") if (run / "summary.json").exists() else None
+            ends = final_ends(run) if summary else {}
+            for (_, _, eta), series in plot.load_curves([run]).items():
+                entry = found.setdefault(variant(eta, changes), dict(curves=[], members=[], ends=[]))
+                entry["curves"] += series
+                # The per-seed table lists finished folders only: a folder still training adds curves, not rows.
+                members = [m for m in summary["members"] if tuple(m["eta"]) == eta] if summary else []
+                entry["members"] += members
+                entry["ends"] += [ends[m["member"]] for m in members]
     return dict(sorted(found.items(), key=lambda item: item[0].startswith("auto")))  # numeric ratios first
 
 
@@ -153,16 +175,21 @@ def figure(found: dict[str, dict], rooms: int, path: Path) -> None:
 
 def main(args: Args) -> str:
     scale, plan, out = SCALES[args.scale], args.plan, args.folder
+    if args.runs and (unknown := set(args.runs) - set(plan.runs)):
+        raise SystemExit(f"error: runs: unknown {sorted(unknown)}; the {args.rooms}-room plan has {list(plan.runs)}")
     if not args.plot_only:
         seeds = plan.seeds if args.seeds is None else args.seeds
         total_steps = plan.total_steps if args.total_steps is None else args.total_steps
         for folder, (etas, changes) in plan.runs.items():
-            run_grid(scale.config(f"maze{args.rooms}", "csac", etas=etas, seeds=seeds, total_steps=total_steps,
-                                  **changes), out / folder)
+            if args.runs and folder not in args.runs:
+                continue
+            run_grid(scale.config(f"maze{args.rooms}", "csac", etas=etas, seeds=seeds, first_seed=args.first_seed,
+                                  total_steps=total_steps, **changes), args.run_folder(folder, seeds))
     found = load(out, plan.runs)
     if not found:
         raise SystemExit(f"error: out: no runs in {out.resolve()}; train them first (without --plot-only)")
-    episodes = read_json(out / next(iter(plan.runs)) / "config.json")["eval_episodes"]
+    first = next(run for folder in plan.runs for run in seed_folders(out, folder) if (run / "config.json").exists())
+    episodes = read_json(first / "config.json")["eval_episodes"]
     milestones = args.milestones or plan.milestones
     text = ("Mean evaluation success over seeds (in parentheses: seeds that reached that step), single evaluations "
             f"of {episodes} deterministic episodes:\n\n"

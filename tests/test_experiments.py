@@ -370,6 +370,27 @@ def test_long_budget_on_three_rooms_trains_its_ratios_in_one_grid_without_the_pr
     assert "| CSAC η = 0.3 | 0.17 ± 0.24 | 0.50 0.00 0.00 | 400 never never | 2.00 (0.50) 1.00 (1.00) 1.00 (1.00) |" in lines
 
 
+def test_long_budget_first_seed_trains_chosen_runs_into_seed_folders_and_pools_them(tmp_path, monkeypatch):
+    calls = []
+    monkeypatch.setattr(long_budget, "run_grid", lambda config, out: calls.append((config, out)))
+    args = long_budget.Args(rooms=3, scale="smoke", total_steps=400, milestones=(400,), out=tmp_path,
+                            runs=("csac_own_scale",), first_seed=3)
+    with pytest.raises(SystemExit, match="^error: runs: unknown \\['csac_own'\\]"):
+        long_budget.main(dataclasses.replace(args, runs=("csac_own",)))
+    assert not calls  # refused before anything trains
+    with pytest.raises(SystemExit, match="^error: out: no runs in"):
+        long_budget.main(args)
+    [(more, more_dir)] = calls  # csac_batch is not in --runs
+    assert (more_dir, more.seeds, more.coop_scale) == (tmp_path / "csac_own_scale_seeds3to5", (3, 4, 5), "own")
+    first = dataclasses.replace(more, seeds=(0, 1, 2))
+    _fake_run(tmp_path / "csac_own_scale", first, {m: [1, 1] if m < 3 else [0, 0] for m in range(6)})
+    _fake_run(more_dir, more, {m: [0, 0] if m else [0, 1] for m in range(6)})  # member 0: η = 0.3, seed 3
+    lines = long_budget.main(dataclasses.replace(args, plot_only=True)).splitlines()
+    assert "| 400 | 0.67 (6) | 0.00 (6) |" in lines  # seeds 0-2 and 3-5 pooled per ratio
+    assert ("| CSAC η = 0.3, one temperature | 0.58 ± 0.45 | 1.00 1.00 1.00 0.50 0.00 0.00 | 200 200 200 400 never "
+            "never |") in [line.rsplit(" | ", 1)[0] + " |" for line in lines]
+
+
 def test_compare_pools_folders_per_variant_and_tests_each_row_against_the_first(tmp_path):
     scale = common.SCALES["smoke"]
     steps = scale.config("maze2", "csac").steps_per_epoch
