@@ -99,7 +99,8 @@ class Args:
 
 def seed_folders(out: Path, run: str) -> list[Path]:
     """`run`'s folder and its `--first-seed` folders (`<run>_seeds<a>to<b>`), lowest seed first."""
-    extra = sorted(out.glob(f"{run}_seeds*to*"), key=lambda p: int(p.name[len(run) + 6:].split("to")[0]))
+    first_seed = lambda p: int(p.name.removeprefix(f"{run}_seeds").split("to")[0])
+    extra = sorted(out.glob(f"{run}_seeds*to*"), key=first_seed)
     return [out / run] + extra
 
 
@@ -120,18 +121,21 @@ def load(out: Path, runs: dict[str, tuple[tuple, dict]]) -> dict[str, dict]:
     """{variant: {"curves": [(steps, success)] per member, "members": finished members' summaries, "ends": ...}}."""
     found = {}
     for folder, (_, changes) in runs.items():
-        for run in seed_folders(out, folder):
-            if not (run / "metrics.jsonl").exists():
+        folders = [run for run in seed_folders(out, folder) if (run / "metrics.jsonl").exists()]
+        # load_curves pools the seed folders, refusing (or counting once) a seed found in two of them.
+        for (_, _, eta), series in (plot.load_curves(folders) if folders else {}).items():
+            found[variant(eta, changes)] = dict(curves=series, members=[], ends=[])
+        seen = set()
+        for run in folders:  # the per-seed table lists finished folders only: one still training adds no rows
+            if not (run / "summary.json").exists():
                 continue
-            summary = read_json(run / "summary.json") if (run / "summary.json").exists() else None
-            ends = final_ends(run) if summary else {}
-            for (_, _, eta), series in plot.load_curves([run]).items():
-                entry = found.setdefault(variant(eta, changes), dict(curves=[], members=[], ends=[]))
-                entry["curves"] += series
-                # The per-seed table lists finished folders only: a folder still training adds curves, not rows.
-                members = [m for m in summary["members"] if tuple(m["eta"]) == eta] if summary else []
-                entry["members"] += members
-                entry["ends"] += [ends[m["member"]] for m in members]
+            ends = final_ends(run)
+            for m in read_json(run / "summary.json")["members"]:
+                if (key := (tuple(m["eta"]), m["seed"])) not in seen:
+                    seen.add(key)
+                    entry = found[variant(key[0], changes)]
+                    entry["members"].append(m)
+                    entry["ends"].append(ends[m["member"]])
     return dict(sorted(found.items(), key=lambda item: item[0].startswith("auto")))  # numeric ratios first
 
 

@@ -385,6 +385,9 @@ def test_long_budget_first_seed_trains_chosen_runs_into_seed_folders_and_pools_t
     first = dataclasses.replace(more, seeds=(0, 1, 2))
     _fake_run(tmp_path / "csac_own_scale", first, {m: [1, 1] if m < 3 else [0, 0] for m in range(6)})
     _fake_run(more_dir, more, {m: [0, 0] if m else [0, 1] for m in range(6)})  # member 0: η = 0.3, seed 3
+    # seeds 4-5 again (an overlapping --first-seed): counted once, from the lower folder
+    _fake_run(tmp_path / "csac_own_scale_seeds4to5", dataclasses.replace(more, seeds=(4, 5)),
+              {m: [1, 1] for m in range(4)})
     lines = long_budget.main(dataclasses.replace(args, plot_only=True)).splitlines()
     assert "| 400 | 0.67 (6) | 0.00 (6) |" in lines  # seeds 0-2 and 3-5 pooled per ratio
     assert ("| CSAC η = 0.3, one temperature | 0.58 ± 0.45 | 1.00 1.00 1.00 0.50 0.00 0.00 | 200 200 200 400 never "
