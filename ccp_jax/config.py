@@ -152,6 +152,15 @@ class Config:
         return 1 if self.algo == "sac" else self.num_stages
 
     @property
+    def value_bound(self) -> float:
+        """The largest value a critic's rewards allow, r_max / (1 − γ), before any entropy bonus.
+
+        Subtask rewards lie in [0, 1], so r_max is 1 per channel, or N for SAC's summed reward; it is
+        also the value a completed subtask bootstraps with (success is absorbing, SPEC §1).
+        """
+        return (self.num_stages if self.algo == "sac" else 1.0) / (1.0 - self.gamma)
+
+    @property
     def num_epochs(self) -> int:
         return self.total_steps // self.steps_per_epoch
 

@@ -124,8 +124,6 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
     n_agents = config.num_agents
     cooperative = config.algo == "csac" and n_agents > 1
     agent_ids = jnp.arange(n_agents)
-    # Channel reward once its subtask is done: 1 per subtask, N for the summed SAC reward.
-    absorbing = (config.num_stages if config.algo == "sac" else 1.0) / (1.0 - config.gamma)
     target_entropy = -float(action_size) if config.target_entropy is None else config.target_entropy
     own_ids = jnp.zeros_like(agent_ids) if n_agents == 1 else agent_ids
     actor_apply = jax.vmap(nets.actor.apply)
@@ -220,7 +218,8 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
                                                                    next_alpha, alpha, k_next)
         q_target = critic_min(slot_params(target_critic), slot_data(batch.next_obs), slot_data(next_act))
         y = soft_target(channel(slot_data(batch.rewards)), q_target, slot_data(next_logp), slot_data(next_alpha),
-                        slot_data(batch.terminal), channel(slot_data(batch.completed)), config.gamma, absorbing)
+                        slot_data(batch.terminal), channel(slot_data(batch.completed)), config.gamma,
+                        config.value_bound)  # a done subtask's value
         q_slot_loss = jax.vmap(losses.twin_q_loss)(
             critic_twin(slot_params(critic), slot_data(batch.obs), slot_data(batch.action)), y)
         q_own_loss, q_next_loss = q_slot_loss[:n_agents], q_slot_loss[n_agents:]

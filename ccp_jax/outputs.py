@@ -12,6 +12,9 @@ import numpy as np
 from ccp_jax.config import Config
 
 FINAL_WINDOW = 10  # reported success = mean over the last 10 epochs (SPEC §3)
+# A critic above this many times `Config.value_bound` has diverged: its entropy bonus adds at most
+# α |A| log 2 / (1 − γ) (no distribution on [−1, 1]^|A| has more entropy), under 9 bounds for α |A| ≤ 13.
+DIVERGED = 10.0
 
 
 def _json_default(x: Any):
@@ -120,7 +123,7 @@ def read_rows(path: Path) -> list[dict]:
 
 
 def summarise(config: Config, rows: list[dict], wall_s: float | None = None) -> dict:
-    """Per member: final success (mean of the last `FINAL_WINDOW` epochs) and learning milestones."""
+    """Per member: final success (mean of the last `FINAL_WINDOW` epochs), learning milestones, critic peaks."""
     members = []
     for member, (eta, seed) in enumerate(config.grid):
         mine = sorted((r for r in rows if r["member"] == member), key=lambda r: r["epoch"])
@@ -134,12 +137,27 @@ def summarise(config: Config, rows: list[dict], wall_s: float | None = None) -> 
             "final_return": float(np.mean([r["eval_return"] for r in mine[-FINAL_WINDOW:]])) if mine else math.nan,
             "best_success": max(success, default=math.nan),
             "first_success_env_steps": first,
+            **critic_peaks(mine, DIVERGED * config.value_bound),
         })
-    return {"final_window_epochs": FINAL_WINDOW, "wall_s": wall_s, "members": members}
+    return {"final_window_epochs": FINAL_WINDOW, "q_bound": config.value_bound, "wall_s": wall_s, "members": members}
+
+
+def critic_peaks(rows: list[dict], limit: float) -> dict:
+    """`q_peak`: per agent, the largest batch maximum of its critic over a member's epochs (`rows`, in order);
+    `q_diverged_env_steps`: the env steps of the first epoch where one was above `limit` or not finite.
+
+    Both are None where no critic ever went above `limit` (the second) or the rows carry no critic values (TP's).
+    """
+    q_max = [r["q_max"] for r in rows if r.get("q_max") is not None]
+    if not q_max:
+        return {"q_peak": None, "q_diverged_env_steps": None}
+    above = lambda q: not all(v <= limit for v in q)  # NaN counts as above
+    return {"q_peak": np.max(q_max, axis=0).tolist(),
+            "q_diverged_env_steps": next((r["env_steps"] for r in rows if r.get("q_max") and above(r["q_max"])), None)}
 
 
 def summary_table(summary: dict) -> str:
-    """A plain-text table of the summary, one line per member."""
+    """A plain-text table of the summary, one line per member; then a warning per member with a diverged critic."""
     lines = [f"{'member':>6}  {'algo':<5}  {'eta':<14}  {'seed':>4}  {'final success':>13}  "
              f"{'final return':>12}  {'first success at':>16}"]
     for m in summary["members"]:
@@ -147,4 +165,11 @@ def summary_table(summary: dict) -> str:
         first = "-" if m["first_success_env_steps"] is None else f"{m['first_success_env_steps']:,}"
         lines.append(f"{m['member']:>6}  {m['algo']:<5}  {eta:<14}  {m['seed']:>4}  {m['final_success']:>13.2f}  "
                      f"{m['final_return']:>12.1f}  {first:>16}")
+    for m in summary["members"]:
+        if m.get("q_diverged_env_steps") is not None:
+            limit = DIVERGED * summary["q_bound"]
+            peaks = ", ".join(f"agent {n}'s at {q:,.0f}" for n, q in enumerate(m["q_peak"]) if not q <= limit)
+            lines.append(f"warning: member {m['member']} (seed {m['seed']}) has a diverged critic: {peaks}, above "
+                         f"{limit:,.0f} ({DIVERGED:g} x the {summary['q_bound']:g} its rewards allow) from "
+                         f"{m['q_diverged_env_steps']:,} env steps (per epoch: q_max in metrics.jsonl)")
     return "\n".join(lines)

@@ -137,12 +137,38 @@ def test_cli_writes_the_contract_files(tmp_path):
     saved = json.loads((out / "summary.json").read_text())
     assert [m["seed"] for m in saved["members"]] == [0, 1] == [m["seed"] for m in summary["members"]]
     assert all(0.0 <= m["final_success"] <= 1.0 for m in saved["members"])
+    assert saved["q_bound"] == pytest.approx(1 / (1 - config["gamma"]))
+    for m in saved["members"]:
+        mine = np.array([r["q_max"] for r in rows if r["member"] == m["member"]])  # [epochs, agents]
+        np.testing.assert_allclose(m["q_peak"], mine.max(0))
+        assert m["q_diverged_env_steps"] is None and mine.max() < 10 * saved["q_bound"]
     before = (out / "metrics.jsonl").read_bytes()
     with pytest.raises(ConfigError, match="^out:"):
         main(["--preset", "tiny", "--out", str(out), "--no-progress"])
     with pytest.raises(ConfigError, match="^members_at_once:"):
         main(["--preset", "tiny", "--members-at-once", "0", "--out", str(tmp_path / "never"), "--no-progress"])
     assert (out / "metrics.jsonl").read_bytes() == before and not (tmp_path / "never").exists()
+
+
+def test_summary_flags_a_critic_above_ten_times_the_value_its_rewards_allow():
+    from ccp_jax import outputs
+
+    config = make_config("tiny", rooms=2, etas=((0.5,),), seeds=(0, 1), gamma=0.9)  # value bound 10, limit 100
+    q_max = {0: [[5.0, 3.0], [99.0, 4.0], [19.0, 2.0]],  # close to the limit, never above it
+             1: [[5.0, 3.0], [250.0, 4.0], [30.0, 101.0]]}
+    rows = [dict(member=m, epoch=e + 1, env_steps=100 * (e + 1), success_rate=0.0, eval_return=0.0, q_max=q)
+            for m, qs in q_max.items() for e, q in enumerate(qs)]
+    summary = outputs.summarise(config, rows)
+    assert summary["q_bound"] == pytest.approx(10.0)
+    healthy, diverged = summary["members"]
+    assert healthy["q_peak"] == [99.0, 4.0] and healthy["q_diverged_env_steps"] is None
+    assert diverged["q_peak"] == [250.0, 101.0] and diverged["q_diverged_env_steps"] == 200  # the first epoch above
+    warnings = [line for line in outputs.summary_table(summary).splitlines() if line.startswith("warning")]
+    assert warnings == ["warning: member 1 (seed 1) has a diverged critic: agent 0's at 250, agent 1's at 101, "
+                        "above 100 (10 x the 10 its rewards allow) from 200 env steps (per epoch: q_max in "
+                        "metrics.jsonl)"]
+    assert outputs.critic_peaks([dict(env_steps=5, q_max=[1.0, float("nan")])], 100.0)["q_diverged_env_steps"] == 5
+    assert outputs.critic_peaks([dict(env_steps=5)], 100.0) == {"q_peak": None, "q_diverged_env_steps": None}  # TP
 
 
 def test_every_hyperparameter_reaches_the_config_from_the_cli():
