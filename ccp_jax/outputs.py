@@ -148,12 +148,17 @@ def critic_peaks(rows: list[dict], limit: float) -> dict:
 
     Both are None where no critic ever went above `limit` (the second) or the rows carry no critic values (TP's).
     """
-    q_max = [r["q_max"] for r in rows if r.get("q_max") is not None]
-    if not q_max:
+    with_critics = [r for r in rows if r.get("q_max")]
+    if not with_critics:
         return {"q_peak": None, "q_diverged_env_steps": None}
-    above = lambda q: not all(v <= limit for v in q)  # NaN counts as above
-    return {"q_peak": np.max(q_max, axis=0).tolist(),
-            "q_diverged_env_steps": next((r["env_steps"] for r in rows if r.get("q_max") and above(r["q_max"])), None)}
+    return {"q_peak": np.max([r["q_max"] for r in with_critics], axis=0).tolist(),
+            "q_diverged_env_steps": next((r["env_steps"] for r in with_critics
+                                          if any(_above(q, limit) for q in r["q_max"])), None)}
+
+
+def _above(q: float, limit: float) -> bool:
+    """Whether a critic value is above `limit`; NaN counts as above."""
+    return not q <= limit
 
 
 def summary_table(summary: dict) -> str:
@@ -168,7 +173,7 @@ def summary_table(summary: dict) -> str:
     for m in summary["members"]:
         if m.get("q_diverged_env_steps") is not None:
             limit = DIVERGED * summary["q_bound"]
-            peaks = ", ".join(f"agent {n}'s at {q:,.0f}" for n, q in enumerate(m["q_peak"]) if not q <= limit)
+            peaks = ", ".join(f"agent {n}'s at {q:,.0f}" for n, q in enumerate(m["q_peak"]) if _above(q, limit))
             lines.append(f"warning: member {m['member']} (seed {m['seed']}) has a diverged critic: {peaks}, above "
                          f"{limit:,.0f} ({DIVERGED:g} x the {summary['q_bound']:g} its rewards allow) from "
                          f"{m['q_diverged_env_steps']:,} env steps (per epoch: q_max in metrics.jsonl)")
