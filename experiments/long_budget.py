@@ -3,6 +3,7 @@
     python experiments/long_budget.py                 # 2 rooms: trains (or resumes) the grids, then table and figure
     python experiments/long_budget.py --rooms 3       # 3 rooms
     python experiments/long_budget.py --rooms 3 --runs csac_own_scale --first-seed 3   # its seeds 3-5 too
+    python experiments/long_budget.py --rooms 3 --runs csac_own_floor --first-seed 3 --seeds 6   # seeds 3-8
     python experiments/long_budget.py --plot-only     # table and figure from the runs as they stand
 
 SPEC §7's yardstick settings (the `cpu` scale: [64, 64] nets, the paper's epoch,
@@ -14,7 +15,8 @@ normaliser (one grid, csac_batch/), `auto` with the floor normaliser
 3 rooms (`long_3room/`): seeds 0–2, 600 k (2x the `cpu` scale's 300 k): η = 0.1
 (the paper's best), η = 0.3 (the `cpu` sweep's best) and `auto`, one grid
 (csac_batch/), then η = 0.3 and `auto` with one temperature for actor and critic
-(`--coop-scale own`, the best 2-room variant; csac_own_scale/). Writes into the
+(`--coop-scale own`, the best 2-room variant; csac_own_scale/), and η = 0.3 with one
+temperature and the floor normaliser at 5 (csac_own_floor/). Writes into the
 results folder: table.md (mean success at the milestones, for 2 rooms beside
 SPEC §7's prototype, then per seed the final success, the first success and
 where the last evaluations end) and success.png. `--first-seed K` trains seeds K.. of the
@@ -54,7 +56,11 @@ PLANS = {
             seeds=6, total_steps=750_000,
             milestones=(50_000, 100_000, 150_000, 200_000, 250_000, 300_000, 400_000, 515_000, 600_000, 750_000)),
     3: Plan(runs={"csac_batch": (((0.1,), (0.3,), (AUTO,)), {}),
-                  "csac_own_scale": (((0.3,), (AUTO,)), {"coop_scale": "own"})},
+                  "csac_own_scale": (((0.3,), (AUTO,)), {"coop_scale": "own"}),
+                  # Seeds 4, 6 and 7 of η = 0.3 with one temperature stall in room 1 with a next critic whose batch
+                  # range is ≈ 1–3 against its own 10–18: a floor of 5 (a quarter of the value bound 1 / (1 − γ))
+                  # caps the weight that flat critic gets.
+                  "csac_own_floor": (((0.3,),), {"coop_scale": "own", "normaliser": "floor", "norm_floor": 5.0})},
             seeds=3, total_steps=600_000,
             milestones=(100_000, 200_000, 300_000, 400_000, 500_000, 600_000)),
 }
@@ -106,7 +112,10 @@ def seed_folders(out: Path, run: str) -> list[Path]:
 
 def variant(eta: tuple, changes: dict) -> str:
     """A row's name: "CSAC η = 0.1", "auto, floor normaliser", "CSAC η = 0.3, one temperature"."""
-    name = f"auto, {changes.get('normaliser', 'batch')} normaliser" if AUTO in eta else f"CSAC η = {eta[0]:g}"
+    normaliser = changes.get("normaliser", "batch")
+    name = "auto" if AUTO in eta else f"CSAC η = {eta[0]:g}"
+    if AUTO in eta or normaliser != "batch":
+        name += f", {normaliser} normaliser" + (f" {changes['norm_floor']:g}" if "norm_floor" in changes else "")
     return name + (", one temperature" if changes.get("coop_scale") == "own" else "")
 
 

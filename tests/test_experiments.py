@@ -355,11 +355,16 @@ def test_long_budget_on_three_rooms_trains_its_ratios_in_one_grid_without_the_pr
     args = long_budget.Args(rooms=3, scale="smoke", total_steps=400, milestones=(200, 400), out=tmp_path)
     with pytest.raises(SystemExit, match="^error: out: no runs in"):
         long_budget.main(args)
-    (grid, grid_dir), (own, own_dir) = calls
+    (grid, grid_dir), (own, own_dir), (floor, floor_dir) = calls
     assert (grid_dir, grid.rooms, grid.etas) == (tmp_path / "csac_batch", 3, ((0.1,), (0.3,), ("auto",)))
     assert (grid.seeds, grid.total_steps, grid.coop_scale) == ((0, 1, 2), 400, "unit")  # the plan's 3 seeds
     assert (own_dir.name, own.etas, own.coop_scale, own.seeds) == ("csac_own_scale", ((0.3,), ("auto",)), "own",
                                                                     (0, 1, 2))
+    assert (floor_dir.name, floor.etas, floor.coop_scale, floor.normaliser, floor.norm_floor) == (
+        "csac_own_floor", ((0.3,),), "own", "floor", 5.0)
+    # a numeric ratio's row names its normaliser only when it is not the paper's
+    assert long_budget.variant((0.3,), {"coop_scale": "own", "normaliser": "floor", "norm_floor": 5.0}) == (
+        "CSAC η = 0.3, floor normaliser 5, one temperature")
     assert long_budget.Args(rooms=3).folder == Path(long_budget.__file__).parent / "results" / "long_3room"
     _fake_run(grid_dir, grid, {m: [0, 1] if m == 3 else [0, 0] for m in range(9)})  # member 3: η = 0.3, seed 0
     _fake_run(own_dir, own, {m: [1, 1] for m in range(6)})
