@@ -4,6 +4,7 @@
     python experiments/long_budget.py --rooms 3       # 3 rooms
     python experiments/long_budget.py --rooms 3 --runs csac_own_scale --first-seed 3   # its seeds 3-5 too
     python experiments/long_budget.py --rooms 3 --runs csac_own_floor --first-seed 3 --seeds 6   # seeds 3-8
+    python experiments/long_budget.py --rooms 3 --runs naive sac --seeds 6   # the baselines, seeds 0-5
     python experiments/long_budget.py --plot-only     # table and figure from the runs as they stand
 
 SPEC §7's yardstick settings (the `cpu` scale: [64, 64] nets, the paper's epoch,
@@ -15,8 +16,9 @@ normaliser (one grid, csac_batch/), `auto` with the floor normaliser
 3 rooms (`long_3room/`): seeds 0–2, 600 k (2x the `cpu` scale's 300 k): η = 0.1
 (the paper's best), η = 0.3 (the `cpu` sweep's best) and `auto`, one grid
 (csac_batch/), then η = 0.3 and `auto` with one temperature for actor and critic
-(`--coop-scale own`, the best 2-room variant; csac_own_scale/), and η = 0.3 with one
-temperature and the floor normaliser at 5 (csac_own_floor/). Writes into the
+(`--coop-scale own`, the best 2-room variant; csac_own_scale/), η = 0.3 with one
+temperature and the floor normaliser at 5 (csac_own_floor/), and the paper's baselines
+Naive (naive/) and end-to-end SAC (sac/). Writes into the
 results folder: table.md (mean success at the milestones, for 2 rooms beside
 SPEC §7's prototype, then per seed the final success, the first success and
 where the last evaluations end) and success.png. `--first-seed K` trains seeds K.. of the
@@ -60,7 +62,11 @@ PLANS = {
                   # Seeds 4, 6 and 7 of η = 0.3 with one temperature stall in room 1 with a next critic whose batch
                   # range is ≈ 1–3 against its own 10–18: a floor of 5 (a quarter of the value bound 1 / (1 − γ))
                   # caps the weight that flat critic gets.
-                  "csac_own_floor": (((0.3,),), {"coop_scale": "own", "normaliser": "floor", "norm_floor": 5.0})},
+                  "csac_own_floor": (((0.3,),), {"coop_scale": "own", "normaliser": "floor", "norm_floor": 5.0}),
+                  # The paper's baselines at the same budget: does CSAC's lead over them (Table I: 0.62 against
+                  # Naive's 0.20 and SAC's 0.00) show once the best CSAC variant learns?
+                  "naive": (((1.0,),), {"algo": "naive"}),
+                  "sac": (((1.0,),), {"algo": "sac"})},
             seeds=3, total_steps=600_000,
             milestones=(100_000, 200_000, 300_000, 400_000, 500_000, 600_000)),
 }
@@ -111,7 +117,9 @@ def seed_folders(out: Path, run: str) -> list[Path]:
 
 
 def variant(eta: tuple, changes: dict) -> str:
-    """A row's name: "CSAC η = 0.1", "auto, floor normaliser", "CSAC η = 0.3, one temperature"."""
+    """A row's name: "CSAC η = 0.1", "auto, floor normaliser", "CSAC η = 0.3, one temperature", "Naive"."""
+    if (algo := changes.get("algo", "csac")) != "csac":
+        return {"naive": "Naive", "sac": "SAC"}[algo]
     normaliser = changes.get("normaliser", "batch")
     name = "auto" if AUTO in eta else f"CSAC η = {eta[0]:g}"
     if AUTO in eta or normaliser != "batch":
@@ -145,7 +153,8 @@ def load(out: Path, runs: dict[str, tuple[tuple, dict]]) -> dict[str, dict]:
                     entry = found[variant(key[0], changes)]
                     entry["members"].append(m)
                     entry["ends"].append(ends[m["member"]])
-    return dict(sorted(found.items(), key=lambda item: item[0].startswith("auto")))  # numeric ratios first
+    # numeric ratios first, then auto, then the baselines
+    return dict(sorted(found.items(), key=lambda item: (item[0] in ("Naive", "SAC"), item[0].startswith("auto"))))
 
 
 def milestone_table(found: dict[str, dict], milestones: tuple[int, ...], with_prototype: bool) -> list[str]:
@@ -196,8 +205,10 @@ def main(args: Args) -> str:
         for folder, (etas, changes) in plan.runs.items():
             if args.runs and folder not in args.runs:
                 continue
-            run_grid(scale.config(f"maze{args.rooms}", "csac", etas=etas, seeds=seeds, first_seed=args.first_seed,
-                                  total_steps=total_steps, **changes), args.run_folder(folder, seeds))
+            changes = dict(changes)
+            run_grid(scale.config(f"maze{args.rooms}", changes.pop("algo", "csac"), etas=etas, seeds=seeds,
+                                  first_seed=args.first_seed, total_steps=total_steps, **changes),
+                     args.run_folder(folder, seeds))
     found = load(out, plan.runs)
     if not found:
         raise SystemExit(f"error: out: no runs in {out.resolve()}; train them first (without --plot-only)")

@@ -355,23 +355,28 @@ def test_long_budget_on_three_rooms_trains_its_ratios_in_one_grid_without_the_pr
     args = long_budget.Args(rooms=3, scale="smoke", total_steps=400, milestones=(200, 400), out=tmp_path)
     with pytest.raises(SystemExit, match="^error: out: no runs in"):
         long_budget.main(args)
-    (grid, grid_dir), (own, own_dir), (floor, floor_dir) = calls
+    (grid, grid_dir), (own, own_dir), (floor, floor_dir), (naive, naive_dir), (sac, sac_dir) = calls
     assert (grid_dir, grid.rooms, grid.etas) == (tmp_path / "csac_batch", 3, ((0.1,), (0.3,), ("auto",)))
     assert (grid.seeds, grid.total_steps, grid.coop_scale) == ((0, 1, 2), 400, "unit")  # the plan's 3 seeds
     assert (own_dir.name, own.etas, own.coop_scale, own.seeds) == ("csac_own_scale", ((0.3,), ("auto",)), "own",
                                                                     (0, 1, 2))
     assert (floor_dir.name, floor.etas, floor.coop_scale, floor.normaliser, floor.norm_floor) == (
         "csac_own_floor", ((0.3,),), "own", "floor", 5.0)
+    assert (naive_dir.name, naive.algo, naive.num_agents, naive.seeds, naive.total_steps) == ("naive", "naive", 3,
+                                                                                               (0, 1, 2), 400)
+    assert (sac_dir.name, sac.algo, sac.num_agents, sac.seeds) == ("sac", "sac", 1, (0, 1, 2))
     # a numeric ratio's row names its normaliser only when it is not the paper's
     assert long_budget.variant((0.3,), {"coop_scale": "own", "normaliser": "floor", "norm_floor": 5.0}) == (
         "CSAC η = 0.3, floor normaliser 5, one temperature")
     assert long_budget.Args(rooms=3).folder == Path(long_budget.__file__).parent / "results" / "long_3room"
     _fake_run(grid_dir, grid, {m: [0, 1] if m == 3 else [0, 0] for m in range(9)})  # member 3: η = 0.3, seed 0
     _fake_run(own_dir, own, {m: [1, 1] for m in range(6)})
+    _fake_run(naive_dir, naive, {0: [0, 0], 1: [0, 1], 2: [0, 0]})
     lines = long_budget.main(dataclasses.replace(args, plot_only=True)).splitlines()
     assert ("| env steps | CSAC η = 0.1 | CSAC η = 0.3 | CSAC η = 0.3, one temperature | auto, batch normaliser "
-            "| auto, batch normaliser, one temperature |") in lines  # no prototype column
-    assert "| 400 | 0.00 (3) | 0.33 (3) | 1.00 (3) | 0.00 (3) | 1.00 (3) |" in lines
+            "| auto, batch normaliser, one temperature | Naive |") in lines  # no prototype column; baselines last
+    assert "| 400 | 0.00 (3) | 0.33 (3) | 1.00 (3) | 0.00 (3) | 1.00 (3) | 0.33 (3) |" in lines
+    assert "| Naive | 0.17 ± 0.24 | 0.00 0.50 0.00 | never 400 never | 1.00 (1.00) 2.00 (0.50) 1.00 (1.00) |" in lines
     assert "| CSAC η = 0.3 | 0.17 ± 0.24 | 0.50 0.00 0.00 | 400 never never | 2.00 (0.50) 1.00 (1.00) 1.00 (1.00) |" in lines
 
 
