@@ -29,6 +29,8 @@ DOMAINS = {"maze2": ("maze", 2), "maze3": ("maze", 3), "maze4": ("maze", 4), "pe
 # Per-domain settings on top of a scale: pusher episodes are brax's 200 steps (10 s), not the maze's 1000.
 DOMAIN_OVERRIDES = {"pusher": dict(max_episode_steps=200)}
 PAPER_ETAS = (0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7, 0.8, 0.9)
+# How tables name each algorithm (the paper's spelling).
+ALGO_NAMES = {"csac": "CSAC", "sac": "SAC", "naive": "Naive", "tp": "TP"}
 
 # The paper's Table I (success, mean of the last 10 epochs, 5 seeds; TP 3 seeds). None: not reported.
 PAPER_TABLE1 = {

@@ -4,7 +4,7 @@
     python experiments/long_budget.py --rooms 3       # 3 rooms
     python experiments/long_budget.py --rooms 3 --runs csac_own_scale --first-seed 3   # its seeds 3-5 too
     python experiments/long_budget.py --rooms 3 --runs csac_own_floor --first-seed 3 --seeds 6   # seeds 3-8
-    python experiments/long_budget.py --rooms 3 --runs naive sac --seeds 6   # the baselines, seeds 0-5
+    python experiments/long_budget.py --rooms 3 --runs naive sac --first-seed 3   # the baselines' seeds 3-5 too
     python experiments/long_budget.py --plot-only     # table and figure from the runs as they stand
 
 SPEC §7's yardstick settings (the `cpu` scale: [64, 64] nets, the paper's epoch,
@@ -35,7 +35,7 @@ import numpy as np
 
 from ccp_jax import plot
 from ccp_jax.config import AUTO
-from common import (RESULTS, SCALES, ScaleName, cli, final_ends, fmt, mean_std, read_json, run_grid, success_at,
+from common import (ALGO_NAMES, RESULTS, SCALES, ScaleName, cli, final_ends, fmt, mean_std, read_json, run_grid, success_at,
                     write_text)
 
 
@@ -119,7 +119,7 @@ def seed_folders(out: Path, run: str) -> list[Path]:
 def variant(eta: tuple, changes: dict) -> str:
     """A row's name: "CSAC η = 0.1", "auto, floor normaliser", "CSAC η = 0.3, one temperature", "Naive"."""
     if (algo := changes.get("algo", "csac")) != "csac":
-        return {"naive": "Naive", "sac": "SAC"}[algo]
+        return ALGO_NAMES[algo]
     normaliser = changes.get("normaliser", "batch")
     name = "auto" if AUTO in eta else f"CSAC η = {eta[0]:g}"
     if AUTO in eta or normaliser != "batch":
@@ -153,8 +153,9 @@ def load(out: Path, runs: dict[str, tuple[tuple, dict]]) -> dict[str, dict]:
                     entry = found[variant(key[0], changes)]
                     entry["members"].append(m)
                     entry["ends"].append(ends[m["member"]])
-    # numeric ratios first, then auto, then the baselines
-    return dict(sorted(found.items(), key=lambda item: (item[0] in ("Naive", "SAC"), item[0].startswith("auto"))))
+    # numeric ratios first, then auto, then the baselines (whose rows are named after their algorithm)
+    baseline = lambda name: name in ALGO_NAMES.values()
+    return dict(sorted(found.items(), key=lambda item: (baseline(item[0]), item[0].startswith("auto"))))
 
 
 def milestone_table(found: dict[str, dict], milestones: tuple[int, ...], with_prototype: bool) -> list[str]:

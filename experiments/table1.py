@@ -28,7 +28,7 @@ from typing import Literal, Optional
 import numpy as np
 
 from ccp_jax.config import AUTO, parse_eta
-from common import (DOMAINS, PAPER_TABLE1, SCALES, ScaleName, cli, eta_label, final_ends, final_success, fmt, mean_std,
+from common import (ALGO_NAMES, DOMAINS, PAPER_TABLE1, SCALES, ScaleName, cli, eta_label, final_ends, final_success, fmt, mean_std,
                     merged_summary, read_json, results_folder, run_grid, swept_folder, swept_runs, write_text)
 
 ALGOS = ("csac", "sac", "naive", "tp")
@@ -153,8 +153,7 @@ def method_table(rows: list[dict], domains: tuple[str, ...], cell_text) -> list[
     lines = ["| method | η | " + " | ".join(domains) + " |", "|" + "---|" * (len(domains) + 2)]
     for algo, eta in methods:
         cells = [cell_text(cell.get((algo, eta, domain)), paper_value(algo, eta, domain)) for domain in domains]
-        name = {"csac": "CSAC", "sac": "SAC", "naive": "Naive", "tp": "TP"}[algo]
-        lines.append(f"| {name} | {eta_label(eta) if algo == 'csac' else ''} | " + " | ".join(cells) + " |")
+        lines.append(f"| {ALGO_NAMES[algo]} | {eta_label(eta) if algo == 'csac' else ''} | " + " | ".join(cells) + " |")
     return lines
 
 
