@@ -72,7 +72,7 @@ def make_train(config: Config, env: Env) -> Trainer:
         key = jax.random.PRNGKey(seed)
         key, k_agents, k_env = jax.random.split(key, 3)
         agents = init_agents(nets, k_agents, config.num_agents, obs_size, action_size,
-                             value_range=1.0 / (1.0 - config.gamma), initial_alpha=config.initial_alpha)
+                             value_range=config.value_bound, initial_alpha=config.initial_alpha)
         example = Transition(obs=jnp.zeros((obs_size,)), action=jnp.zeros((action_size,)),
                              rewards=jnp.zeros((num_channels,)), next_obs=jnp.zeros((obs_size,)),
                              terminal=jnp.zeros(()), completed=jnp.zeros((num_channels,)),
