@@ -13,7 +13,7 @@ os.environ["XLA_FLAGS"] = cpu_xla_flags()
 
 _EXPORTS = {
     "Config": "ccp_jax.config", "ConfigError": "ccp_jax.config", "make_config": "ccp_jax.config",
-    "load_policy": "ccp_jax.policy", "run": "ccp_jax.train",
+    "load_policy": "ccp_jax.policy", "evaluate_run": "ccp_jax.evaluate", "run": "ccp_jax.train",
 }
 __all__ = list(_EXPORTS)
 

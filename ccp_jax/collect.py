@@ -20,8 +20,24 @@ from ccp_jax.networks import Actor, deterministic_action, sample_action
 class EpisodeStats(NamedTuple):
     """Training episodes that ended during a collection: counts summed over the epoch."""
 
-    episodes: jax.Array
-    successes: jax.Array
+    episodes: jax.Array  # float32[]
+    successes: jax.Array  # float32[]
+    stages: jax.Array  # float32[N]: of which reached stage n (see `stage_counts`)
+
+
+def per_episode(count: jax.Array, episodes: jax.Array) -> jax.Array:
+    """A count over ended training episodes as a fraction of them (0 when none ended)."""
+    return count / jnp.maximum(episodes, 1.0)
+
+
+def stage_counts(done: jax.Array, stage: jax.Array, num_stages: int) -> jax.Array:
+    """float32[N]: how many of the episodes that ended (done [E]) reached each stage (final stage int32[E]).
+
+    The stochastic training episodes' counterpart of `EvalMetrics.stage_fraction`: a first agent can
+    hand over while acting with noise and yet stall under its deterministic mean.
+    """
+    reached = stage[:, None] >= jnp.arange(num_stages)[None, :]
+    return ((done > 0)[:, None] & reached).sum(0).astype(jnp.float32)
 
 
 def agent_of(config: Config, stage: jax.Array) -> jax.Array:
@@ -100,12 +116,14 @@ def make_collect(config: Config, env: Env, actor: Actor) -> Callable:
                         completed=completed_channels(config, nxt.info["stage"], success),
                         next_stage=nxt.info["stage"])
         buffer = add(buffer, tr, agent)
-        stats = EpisodeStats(stats.episodes + nxt.done.sum(), stats.successes + (nxt.done * success).sum())
+        stats = EpisodeStats(stats.episodes + nxt.done.sum(), stats.successes + (nxt.done * success).sum(),
+                             stats.stages + stage_counts(nxt.done, nxt.info["stage"], config.num_stages))
         env_state = auto_reset(env, nxt, k_reset)
         return (env_state, buffer, key, env_steps + num_envs, stats), None
 
     def collect(actor_params, env_state: State, buffer: ReplayBuffer, key: jax.Array, env_steps: jax.Array):
-        stats = EpisodeStats(jnp.zeros((), jnp.float32), jnp.zeros((), jnp.float32))
+        zero = jnp.zeros((), jnp.float32)
+        stats = EpisodeStats(zero, zero, jnp.zeros((config.num_stages,), jnp.float32))
         carry = (env_state, buffer, key, env_steps, stats)
         (env_state, buffer, _, _, stats), _ = jax.lax.scan(
             lambda c, x: one_step(actor_params, c, x), carry, None, length=config.collect_iters)
@@ -126,39 +144,47 @@ class EvalMetrics(NamedTuple):
 def episode_metrics(state: State, ret: jax.Array, length: jax.Array, num_stages: int) -> EvalMetrics:
     """EvalMetrics of a batch of finished episodes: their final states [E, ...], returns and lengths float32[E]."""
     stage = state.info["stage"]
-    reached = (stage[:, None] >= jnp.arange(num_stages)[None, :]).astype(jnp.float32)
     return EvalMetrics(success_rate=state.metrics["success"].mean(), eval_return=ret.mean(),
                        stage_reached_mean=stage.astype(jnp.float32).mean(),
-                       stage_fraction=reached.mean(0), episode_length=length.mean(),
+                       stage_fraction=stage_counts(jnp.ones_like(stage), stage, num_stages) / stage.shape[0],
+                       episode_length=length.mean(),
                        end_metrics={k: v.mean() for k, v in state.metrics.items() if k != "success"})
 
 
-def make_evaluate(config: Config, env: Env, actor: Actor) -> Callable:
-    """`evaluate(actor_params, key) -> EvalMetrics` over `config.eval_episodes` deterministic episodes.
+def make_evaluate(config: Config, env: Env, actor: Actor, episodes: int | None = None,
+                  stochastic: bool = False) -> Callable:
+    """`evaluate(actor_params, key) -> EvalMetrics` over `episodes` (default `config.eval_episodes`) episodes.
 
-    Episodes run in parallel until all are done (or the time limit); a finished
+    Actions are the policies' deterministic means (SPEC §3), or with `stochastic` sampled as in
+    training. Episodes run in parallel until all are done (or the time limit); a finished
     episode is frozen rather than reset.
     """
-    episodes, num_stages = config.eval_episodes, config.num_stages
+    episodes, num_stages = episodes or config.eval_episodes, config.num_stages
     v_step, v_reset = jax.vmap(env.step), jax.vmap(env.reset)
 
     def evaluate(actor_params, key: jax.Array) -> EvalMetrics:
-        state = v_reset(jax.random.split(key, episodes))
+        state = v_reset(jax.random.split(key, episodes))  # the deterministic evaluation's starts, as before
+        key = jax.random.fold_in(key, 1)  # the stochastic actions' stream
         zeros = jnp.zeros((episodes,), jnp.float32)
 
         def cond(carry):
-            state, _, _, t = carry
+            state, _, _, t, _ = carry
             return jnp.any(state.done == 0) & (t < config.max_episode_steps)
 
         def body(carry):
-            state, ret, length, t = carry
+            state, ret, length, t, key = carry
             agent = agent_of(config, state.info["stage"])
-            mean, _ = policy_mean_and_log_std(actor, actor_params, state.obs, agent)
-            nxt = v_step(state, deterministic_action(mean))
+            mean, log_std = policy_mean_and_log_std(actor, actor_params, state.obs, agent)
+            if stochastic:
+                key, k_act = jax.random.split(key)
+                action, _ = sample_action(mean, log_std, k_act, config.tanh_log_prob)
+            else:
+                action = deterministic_action(mean)
+            nxt = v_step(state, action)
             live = 1.0 - state.done
-            return (where_done(state.done, state, nxt), ret + live * nxt.reward, length + live, t + 1)
+            return (where_done(state.done, state, nxt), ret + live * nxt.reward, length + live, t + 1, key)
 
-        state, ret, length, _ = jax.lax.while_loop(cond, body, (state, zeros, zeros, jnp.int32(0)))
+        state, ret, length, _, _ = jax.lax.while_loop(cond, body, (state, zeros, zeros, jnp.int32(0), key))
         return episode_metrics(state, ret, length, num_stages)
 
     return evaluate

@@ -51,6 +51,7 @@ def metric_rows(config: Config, epoch: int, metrics, wall_s: float) -> list[dict
             "eval_episode_length": float(ev.episode_length[member]),
             "train_success": float(metrics.train_success[member]),
             "train_episodes": int(metrics.train_episodes[member]),
+            "train_stage_fraction": [float(v) for v in metrics.train_stage_fraction[member]],
         }
         if ev.end_metrics:  # env diagnostics at the evaluation episodes' end, e.g. the maze's `pocket`
             row["eval_end"] = {k: float(v[member]) for k, v in ev.end_metrics.items()}
@@ -161,12 +162,17 @@ def _above(q: float, limit: float) -> bool:
     return not q <= limit
 
 
+def eta_text(eta: list) -> str:
+    """A member's per-agent ratios as "0.1,0.5,1" (or "auto,1")."""
+    return ",".join(x if isinstance(x, str) else f"{x:g}" for x in eta)
+
+
 def summary_table(summary: dict) -> str:
     """A plain-text table of the summary, one line per member; then a warning per member with a diverged critic."""
     lines = [f"{'member':>6}  {'algo':<5}  {'eta':<14}  {'seed':>4}  {'final success':>13}  "
              f"{'final return':>12}  {'first success at':>16}"]
     for m in summary["members"]:
-        eta = ",".join(x if isinstance(x, str) else f"{x:g}" for x in m["eta"]) if m["algo"] == "csac" else "-"
+        eta = eta_text(m["eta"]) if m["algo"] == "csac" else "-"
         first = "-" if m["first_success_env_steps"] is None else f"{m['first_success_env_steps']:,}"
         lines.append(f"{m['member']:>6}  {m['algo']:<5}  {eta:<14}  {m['seed']:>4}  {m['final_success']:>13.2f}  "
                      f"{m['final_return']:>12.1f}  {first:>16}")

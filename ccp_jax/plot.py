@@ -134,8 +134,10 @@ def mean_std(series: Sequence[Series]) -> tuple[np.ndarray, np.ndarray, np.ndarr
 
 def _metric_label(metric: str) -> str:
     """Axis label: "stage_fraction/k" (metrics of the k-th stage index) reads as stage k + 1 reached."""
-    if metric.startswith("stage_fraction/"):
-        return f"fraction reaching stage {int(metric.split('/')[1]) + 1}"
+    name, _, k = metric.partition("/")
+    if name in ("stage_fraction", "train_stage_fraction") and k:
+        episodes = "training episodes" if name.startswith("train") else "evaluations"
+        return f"fraction of {episodes} reaching stage {int(k) + 1}"
     return metric.replace("_", " ")
 
 
@@ -149,7 +151,7 @@ def curves(groups: dict[Group, list[Series]], metric: str = "success_rate",
     if ax is None:
         ax = new_figure().add_subplot()
     show_task = len({g[0] for g in groups}) > 1
-    fraction = metric == "success_rate" or metric.startswith("stage_fraction")  # fractions of episodes
+    fraction = metric == "success_rate" or "stage_fraction" in metric  # fractions of episodes
     for group in sorted(groups, key=group_order):
         steps, mean, std, count = mean_std(groups[group])
         line, = ax.plot(steps, mean, label=f"{group_label(group, show_task)} (n={count.max(initial=0)})")

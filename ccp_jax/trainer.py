@@ -19,7 +19,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ccp_jax import buffer as replay
 from ccp_jax.buffer import ReplayBuffer, Transition
-from ccp_jax.collect import EvalMetrics, make_collect, make_evaluate
+from ccp_jax.collect import EvalMetrics, make_collect, make_evaluate, per_episode
 from ccp_jax.config import Config, ConfigError
 from ccp_jax.devices import grid_devices, pad_grid
 from ccp_jax.learner import AgentState, Networks, UpdateMetrics, init_agents, make_learner, make_networks
@@ -45,6 +45,7 @@ class EpochMetrics(NamedTuple):
     train: UpdateMetrics
     train_episodes: jax.Array
     train_success: jax.Array
+    train_stage_fraction: jax.Array  # float32[N]: of the epoch's ended training episodes, the fraction reaching stage n
     buffer_size: jax.Array  # int32[N]
     pull_own: jax.Array  # float32[N]: mean ‖∂(η Q̂_n)/∂a‖ on one batch after the epoch's updates
     pull_next: jax.Array  # float32[N]: mean ‖∂((1 − η) Q̂_{n+1})/∂a‖
@@ -116,7 +117,8 @@ def make_train(config: Config, env: Env) -> Trainer:
         metrics = EpochMetrics(env_steps=env_steps, eval=eval_metrics,
                                train=jax.tree.map(lambda x: x.mean(0), train_metrics),
                                train_episodes=stats.episodes,
-                               train_success=stats.successes / jnp.maximum(stats.episodes, 1.0),
+                               train_success=per_episode(stats.successes, stats.episodes),
+                               train_stage_fraction=per_episode(stats.stages, stats.episodes),
                                buffer_size=buffer.size, pull_own=pull_own, pull_next=pull_next)
         new_state = TrainState(agents=agents, buffer=buffer, env_state=env_state, key=key,
                                env_steps=env_steps, epoch=state.epoch + 1)

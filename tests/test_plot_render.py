@@ -1,4 +1,4 @@
-"""Plots, videos and metric loggers made from a real (tiny) run folder."""
+"""Plots, videos, re-evaluation and metric loggers made from a real (tiny) run folder."""
 from __future__ import annotations
 
 import importlib.machinery
@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ccp_jax import loggers, outputs, plot, render
+from ccp_jax import evaluate, loggers, outputs, plot, render
 from ccp_jax.config import Config
 from ccp_jax.train import main as train_main
 from envs_mjx.maze import Maze
@@ -60,7 +60,7 @@ def test_plot_per_agent_metric_and_bad_metric(run_dir, tmp_path):
 def test_stage_fraction_plot_is_labelled_by_stage_and_spans_fractions(run_dir):
     groups = plot.load_curves([run_dir], "stage_fraction/1")
     ax = plot.curves(groups, "stage_fraction/1").axes[0]
-    assert ax.get_ylabel() == "fraction reaching stage 2"
+    assert ax.get_ylabel() == "fraction of evaluations reaching stage 2"
     assert ax.get_ylim() == (-0.02, 1.02)
     steps = np.array([10, 20])  # three seeds, mean ± std = 0.67 ± 0.47 at both steps: the band is clipped to [0, 1]
     seeds = {("peg", "naive", (1.0, 1.0)): [(steps, np.ones(2)), (steps, np.ones(2)), (steps, np.zeros(2))]}
@@ -182,6 +182,25 @@ def test_render_cli_video_frames_change(run_dir, tmp_path):
     assert frames.ndim == 4 and len(frames) > 10
     assert frames.shape[1:3] == (5 * 48 + 80, 10 * 48 + 96)
     assert np.any(frames[0] != frames[len(frames) // 2]) and np.any(frames[1] != frames[-1])
+
+
+def test_evaluate_cli_reevaluates_every_member_from_the_checkpoint(run_dir, config, tmp_path, capsys):
+    rows = evaluate.main([str(run_dir), "--episodes", "6", "--out", str(tmp_path / "det.json")])
+    assert [(r["member"], r["seed"]) for r in rows] == [(0, 0), (1, 1)]
+    assert json.loads((tmp_path / "det.json").read_text()) == rows
+    for r in rows:
+        assert r["episodes"] == 6 and not r["stochastic"] and len(r["stage_fraction"]) == config.num_stages
+        assert r["stage_fraction"][0] == 1.0 and 0.0 <= r["success_rate"] <= r["stage_fraction"][-1] <= 1.0
+        assert set(r["eval_end"]) == {"pocket"} and 0 < r["episode_length"] <= config.max_episode_steps
+    last = config.num_epochs  # the latest checkpoint is the default
+    assert evaluate.evaluate_run(run_dir, episodes=6, epoch=last) == rows
+    noisy = evaluate.evaluate_run(run_dir, episodes=6, stochastic=True)
+    assert all(r["stochastic"] for r in noisy) and [r["eval_return"] for r in noisy] != [r["eval_return"] for r in rows]
+    assert "| member | seed | eta | success |" in capsys.readouterr().out
+    for argv, message in ((["--episodes", "0"], "episodes: must be >= 1"), (["--epoch", "99"], "no checkpoint of epoch 99"),):
+        with pytest.raises(SystemExit) as exit_info:
+            evaluate.main([str(run_dir)] + argv)
+        assert exit_info.value.code == 2 and message in capsys.readouterr().err
 
 
 def test_rollout_stops_at_done_and_maze_frames_follow_the_robot():

@@ -249,10 +249,11 @@ def test_cli_runs_tp_and_writes_the_contract_files(primitives_run, tmp_path):
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) == 2 * config["num_epochs"]
     for key in ("member", "seed", "epoch", "env_steps", "success_rate", "eval_return", "stage_reached_mean",
-                "stage_fraction", "tp_samples", "tp_won", "tp_lost", "prox_loss", "pi_loss", "v_loss",
+                "stage_fraction", "train_stage_fraction", "tp_samples", "tp_won", "tp_lost", "prox_loss", "pi_loss", "v_loss",
                 "tp_eval_transition_fraction", "tp_init_env_steps"):
         assert key in rows[0], key
     assert len(rows[0]["tp_samples"]) == 1 and len(rows[0]["stage_fraction"]) == 2 and "pocket" in rows[0]["eval_end"]
+    assert all(r["train_stage_fraction"][0] == 1.0 for r in rows if r["train_episodes"])
     assert [r["env_steps"] for r in rows if r["member"] == 0] == [200, 400]
     assert all(np.isfinite(r["prox_loss"][0]) and np.isfinite(r["pi_loss"][0]) for r in rows)
     saved = json.loads((out / "summary.json").read_text())

@@ -7,9 +7,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ccp_jax.collect import auto_reset
+from ccp_jax.collect import auto_reset, make_evaluate, stage_counts
 from ccp_jax.config import ConfigError, make_config
 from ccp_jax.envs import make_env
+from ccp_jax.networks import Actor
 from ccp_jax.train import main
 from ccp_jax.trainer import make_grid_train
 from toy_env import Line
@@ -43,6 +44,34 @@ def test_auto_reset_replaces_exactly_the_finished_envs(vmapped):
         np.testing.assert_array_equal(pick(out.info["steps"]), np.where(np.array(done) > 0, 0, 1))
 
 
+def test_stage_counts_count_ended_episodes_by_the_stages_they_reached():
+    done, stage = jnp.array([1.0, 0.0, 1.0, 1.0, 1.0]), jnp.array([0, 2, 1, 2, 0])
+    # ended: stages 0, 1, 2, 0 -> 4 reached stage 1 (index 0), 2 reached index 1, 1 reached index 2; env 1 runs on
+    np.testing.assert_array_equal(stage_counts(done, stage, 3), [4.0, 2.0, 1.0])
+    np.testing.assert_array_equal(stage_counts(jnp.zeros(5), stage, 3), [0.0, 0.0, 0.0])
+
+
+def test_evaluation_acts_with_the_mean_or_with_the_policy_noise():
+    """A policy of mean 0 and log-std 2 on the line (start x0 in [0, 0.2], steps of 0.25·a, 50 steps): its mean
+    never moves, so every episode returns 50·x0; its samples (tanh of N(0, e²), mostly near ±1) random-walk
+    across x = 1 into stage 2 in many of them."""
+    config, env, actor = make_config("tiny", rooms=2), Line(2, 50), Actor((4,), 1)
+    params = actor.init(jax.random.PRNGKey(0), jnp.zeros((1, 3)))
+    head = params["params"]["MLP_0"]["Dense_1"]
+    head["kernel"], head["bias"] = jnp.zeros_like(head["kernel"]), jnp.array([0.0, 2.0])
+    agents = jax.tree.map(lambda x: jnp.stack([x, x]), params)  # both stages' agents
+    key, episodes = jax.random.PRNGKey(7), 64
+    mean = jax.jit(make_evaluate(config, env, actor, episodes=episodes))(agents, key)
+    x0 = jax.vmap(env.reset)(jax.random.split(key, episodes)).pipeline_state  # the starts, from the same key
+    np.testing.assert_allclose(mean.eval_return, 50 * x0.mean(), rtol=1e-5)
+    np.testing.assert_array_equal(mean.stage_fraction, [1.0, 0.0])
+    noisy = jax.jit(make_evaluate(config, env, actor, episodes=episodes, stochastic=True))
+    first, again = noisy(agents, key), noisy(agents, key)
+    np.testing.assert_array_equal(first.stage_fraction, again.stage_fraction)  # one key, the same episodes
+    assert first.stage_fraction[0] == 1.0 and first.stage_fraction[1] > 0.2
+    assert first.eval_return != mean.eval_return
+
+
 @pytest.fixture(scope="module")
 def grid_run():
     trainer = make_grid_train(GRID, make_env(GRID))
@@ -55,13 +84,17 @@ def test_epoch_shapes_and_dtypes(grid_run):
     g, n = GRID.grid_size, GRID.num_agents
     chex.assert_shape([m.eval.success_rate, m.eval.eval_return, m.env_steps], (g,))
     chex.assert_shape([m.train.q_loss, m.train.pi_loss, m.train.alpha, m.train.eta_star, m.buffer_size], (g, n))
-    chex.assert_shape(m.eval.stage_fraction, (g, 2))
+    chex.assert_shape([m.eval.stage_fraction, m.train_stage_fraction], (g, 2))
     chex.assert_shape(state.buffer.data.obs, (g, n, GRID.buffer_size, 24))
     assert state.buffer.data.obs.dtype == np.float32 and m.buffer_size.dtype == np.int32
     np.testing.assert_array_equal(m.env_steps, [400] * g)
     # Every collected step went to exactly one agent's buffer.
     np.testing.assert_array_equal(m.buffer_size.sum(1), [400] * g)
     assert np.all(np.isfinite(m.train.q_loss)) and np.all(m.eval.stage_fraction[:, 0] == 1.0)
+    # Training episodes (tiny: 100 steps, 2 envs, so 2 end per epoch) all start in stage 1; a success ended in
+    # the last stage.
+    assert np.all(m.train_episodes == 2) and np.all(m.train_stage_fraction[:, 0] == 1.0)
+    assert np.all(m.train_stage_fraction[:, 1] >= m.train_success)
     # The env's other metrics at the episodes' end (the maze's pocket), a fraction of the episodes.
     assert set(m.eval.end_metrics) == {"pocket"} and m.eval.end_metrics["pocket"].shape == (g,)
     assert np.all((m.eval.end_metrics["pocket"] >= 0) & (m.eval.end_metrics["pocket"] <= 1))
@@ -133,7 +166,7 @@ def test_cli_writes_the_contract_files(tmp_path):
                 "stage_reached_mean", "q_loss", "pi_loss", "alpha", "eta_star"):
         assert key in rows[0], key
     assert rows[0]["eta"] == [0.1, 1.0, 1.0] and len(rows[0]["q_loss"]) == 3 and rows[0]["eta_star"][2] is None
-    assert set(rows[0]["eval_end"]) == {"pocket"}
+    assert set(rows[0]["eval_end"]) == {"pocket"} and len(rows[0]["train_stage_fraction"]) == 3
     saved = json.loads((out / "summary.json").read_text())
     assert [m["seed"] for m in saved["members"]] == [0, 1] == [m["seed"] for m in summary["members"]]
     assert all(0.0 <= m["final_success"] <= 1.0 for m in saved["members"])

@@ -24,7 +24,7 @@ import jax.numpy as jnp
 from brax.envs.base import Env, State
 from flax import struct
 
-from ccp_jax.collect import auto_reset, episode_metrics, policy_mean_and_log_std, where_done
+from ccp_jax.collect import auto_reset, episode_metrics, policy_mean_and_log_std, stage_counts, where_done
 from ccp_jax.config import Config
 from ccp_jax.networks import deterministic_action
 from ccp_jax.tp.networks import Proximity, RunningNorm, TransitionPolicy, Value, normalise
@@ -129,6 +129,7 @@ class RolloutStats(NamedTuple):
     lost: jax.Array  # segments labelled failure
     episodes: jax.Array  # float32[]: training episodes ended
     successes: jax.Array  # float32[]: of which successful
+    stages: jax.Array  # float32[N]: of which reached stage n
 
 
 def make_rollout(config: Config, env: Env, nets: TPNets) -> Callable:
@@ -182,13 +183,14 @@ def make_rollout(config: Config, env: Env, nets: TPNets) -> Callable:
                              handovers=stats.handovers + count(d.term, d.k),
                              forced=stats.forced + count(d.forced, d.k),
                              won=stats.won + count(won, pending_policy), lost=stats.lost + count(lost, pending_policy),
-                             episodes=stats.episodes + done.sum(), successes=stats.successes + (done & success).sum())
+                             episodes=stats.episodes + done.sum(), successes=stats.successes + (done & success).sum(),
+                             stages=stats.stages + stage_counts(done, next_stage, config.num_stages))
         env_state = auto_reset(env, nxt, k_reset)
         return (env_state, ctrl, data, stats), sample
 
     def rollout(params: TPParams, env_state: State, ctrl: Control, data: ProximityData, key: jax.Array):
         zk, z = jnp.zeros((num_k,)), jnp.zeros(())
-        stats = RolloutStats(zk, zk, zk, zk, zk, z, z)
+        stats = RolloutStats(zk, zk, zk, zk, zk, z, z, jnp.zeros((config.num_stages,)))
         (env_state, ctrl, data, stats), samples = jax.lax.scan(
             lambda c, k: one_step(params, c, k), (env_state, ctrl, data, stats),
             jax.random.split(key, config.collect_iters))

@@ -17,7 +17,7 @@ import optax
 from brax.envs.base import Env, State
 from flax import struct
 
-from ccp_jax.collect import EvalMetrics
+from ccp_jax.collect import EvalMetrics, per_episode
 from ccp_jax.config import Config
 from ccp_jax.trainer import GridTrainer, Trainer
 from ccp_jax.tp.networks import (Proximity, RunningNorm, TransitionPolicy, Value, norm_init, norm_update,
@@ -77,6 +77,7 @@ class TPEpochMetrics(NamedTuple):
     eval: EvalMetrics
     train_episodes: jax.Array
     train_success: jax.Array
+    train_stage_fraction: jax.Array  # float32[N]
     eval_transition_fraction: jax.Array  # fraction of evaluation env steps taken by transition policies
     init_env_steps: jax.Array
     tp: TPTrainMetrics
@@ -171,7 +172,8 @@ def make_tp_train(config: Config, env: Env, primitives: Primitives) -> Trainer:
         env_steps = state.env_steps + config.steps_per_epoch
         metrics = TPEpochMetrics(
             env_steps=env_steps, eval=eval_metrics, train_episodes=stats.episodes,
-            train_success=stats.successes / jnp.maximum(stats.episodes, 1.0),
+            train_success=per_episode(stats.successes, stats.episodes),
+            train_stage_fraction=per_episode(stats.stages, stats.episodes),
             eval_transition_fraction=transition_fraction, init_env_steps=state.init_env_steps,
             tp=TPTrainMetrics(rollout=stats, predictor=jax.tree.map(lambda x: x.mean(0), prox_metrics),
                               ppo=ppo_metrics, success_buffer=data.success.size, failure_buffer=data.failure.size,

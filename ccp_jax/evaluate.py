@@ -1,0 +1,88 @@
+"""Evaluate a trained run again: more episodes than an epoch's, or with the policies' training noise.
+
+    python -m ccp_jax.evaluate RUN_DIR [--episodes 100] [--stochastic] [--epoch E] [--seed S] [--out FILE.json]
+
+Every grid member of the run's checkpoint is evaluated on the same start states, in one vmapped
+program. A training run's per-epoch success comes from a few deterministic episodes (SPEC §3);
+with `--stochastic` the actions are sampled as in collection, which tells a first agent that
+hands over only while exploring from one that never does.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Optional, Sequence
+
+import jax
+import numpy as np
+
+from ccp_jax import outputs
+from ccp_jax.collect import make_evaluate
+from ccp_jax.config import Config
+from ccp_jax.envs import make_env
+from ccp_jax.policy import load_actors
+
+
+def evaluate_run(run_dir: str | Path, episodes: int = 100, stochastic: bool = False, epoch: Optional[int] = None,
+                 seed: int = 0) -> list[dict]:
+    """One dict per grid member: member, seed, eta, episodes, stochastic, success_rate, eval_return,
+    stage_reached_mean, stage_fraction [N], episode_length and the env's end metrics (`eval_end`)."""
+    run_dir = Path(run_dir)
+    config = Config.from_dict(json.loads((run_dir / "config.json").read_text()))
+    if config.algo == "tp":
+        raise ValueError("algo: evaluate loads SAC-family actors (csac, naive, sac); a TP run's transition "
+                         "policies are not supported")
+    if episodes < 1:
+        raise ValueError(f"episodes: must be >= 1, got {episodes}")
+    actor, actors = load_actors(run_dir, config, epoch)  # leaves [G, N, ...]
+    evaluate = make_evaluate(config, make_env(config), actor, episodes=episodes, stochastic=stochastic)
+    metrics = jax.device_get(jax.jit(jax.vmap(evaluate, in_axes=(0, None)))(actors, jax.random.PRNGKey(seed)))
+    rows = []
+    for member, (eta, member_seed) in enumerate(config.grid):
+        pick = lambda x: np.asarray(x)[member]
+        rows.append({"member": member, "seed": member_seed, "eta": list(eta), "episodes": episodes,
+                     "stochastic": stochastic, "success_rate": float(pick(metrics.success_rate)),
+                     "eval_return": float(pick(metrics.eval_return)),
+                     "stage_reached_mean": float(pick(metrics.stage_reached_mean)),
+                     "stage_fraction": [float(v) for v in pick(metrics.stage_fraction)],
+                     "episode_length": float(pick(metrics.episode_length)),
+                     "eval_end": {k: float(pick(v)) for k, v in metrics.end_metrics.items()}})
+    return rows
+
+
+def table(rows: list[dict]) -> str:
+    """A markdown table of `evaluate_run`'s rows."""
+    ends = sorted({k for r in rows for k in r["eval_end"]})
+    head = ["member", "seed", "eta", "success", "stage reached, fraction per stage"] + ends
+    lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
+    for r in rows:
+        cells = [str(r["member"]), str(r["seed"]), outputs.eta_text(r["eta"]), f"{r['success_rate']:.2f}",
+                 " ".join(f"{f:.2f}" for f in r["stage_fraction"])]
+        lines.append("| " + " | ".join(cells + [f"{r['eval_end'][k]:.2f}" for k in ends]) + " |")
+    return "\n".join(lines)
+
+
+def main(argv: Optional[Sequence[str]] = None) -> list[dict]:
+    parser = argparse.ArgumentParser(prog="python -m ccp_jax.evaluate",
+                                     description="Evaluate every grid member of a trained run from its checkpoint.")
+    parser.add_argument("run_dir", type=Path, metavar="RUN_DIR")
+    parser.add_argument("--episodes", type=int, default=100, help="episodes per member (default 100)")
+    parser.add_argument("--stochastic", action="store_true", help="sample actions as in training, not the mean")
+    parser.add_argument("--epoch", type=int, help="checkpoint epoch (default: the latest)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the start states (and of the noise)")
+    parser.add_argument("--out", type=Path, help="also write the rows to FILE.json")
+    args = parser.parse_args(argv)
+    try:
+        rows = evaluate_run(args.run_dir, args.episodes, args.stochastic, args.epoch, args.seed)
+    except (ValueError, FileNotFoundError) as err:
+        parser.exit(2, f"error: {err}\n")
+    mode = "stochastic" if args.stochastic else "deterministic"
+    print(f"{args.episodes} {mode} episodes per member, {args.run_dir}\n\n{table(rows)}")
+    if args.out:
+        outputs.write_json(args.out, rows)
+    return rows
+
+
+if __name__ == "__main__":
+    main()
