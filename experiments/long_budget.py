@@ -5,6 +5,7 @@
     python experiments/long_budget.py --rooms 3 --runs csac_own_scale --first-seed 3   # its seeds 3-5 too
     python experiments/long_budget.py --rooms 3 --runs csac_own_floor --first-seed 3 --seeds 6   # seeds 3-8
     python experiments/long_budget.py --rooms 3 --runs naive sac --first-seed 3   # the baselines' seeds 3-5 too
+    python experiments/long_budget.py --rooms 3 --runs csac_own_scale --first-seed 9 --keep-checkpoints   # for ccp_jax.evaluate
     python experiments/long_budget.py --plot-only     # table and figure from the runs as they stand
 
 SPEC §7's yardstick settings (the `cpu` scale: [64, 64] nets, the paper's epoch,
@@ -93,6 +94,8 @@ class Args:
     """Default experiments/results/long_<rooms>room."""
     plot_only: bool = False
     """Never train: table and figure from whatever the folders hold (unfinished runs too)."""
+    keep_checkpoints: bool = False
+    """Keep each run's checkpoints once it finishes (for `python -m ccp_jax.evaluate`); deleted by default."""
 
     @property
     def plan(self) -> Plan:
@@ -209,7 +212,7 @@ def main(args: Args) -> str:
             changes = dict(changes)
             run_grid(scale.config(f"maze{args.rooms}", changes.pop("algo", "csac"), etas=etas, seeds=seeds,
                                   first_seed=args.first_seed, total_steps=total_steps, **changes),
-                     args.run_folder(folder, seeds))
+                     args.run_folder(folder, seeds), keep_checkpoints=args.keep_checkpoints)
     found = load(out, plan.runs)
     if not found:
         raise SystemExit(f"error: out: no runs in {out.resolve()}; train them first (without --plot-only)")

@@ -323,7 +323,7 @@ def test_paper_projection_builds_table1s_grids_and_sums_the_sweeps():
 
 def test_long_budget_trains_its_grids_then_tables_success_at_milestones_and_per_seed(tmp_path, monkeypatch):
     calls = []
-    monkeypatch.setattr(long_budget, "run_grid", lambda config, out: calls.append((config, out)))
+    monkeypatch.setattr(long_budget, "run_grid", lambda config, out, keep_checkpoints: calls.append((config, out)))
     args = long_budget.Args(scale="smoke", seeds=2, total_steps=600, milestones=(200, 400, 600, 150_000), out=tmp_path)
     with pytest.raises(SystemExit, match="^error: out: no runs in"):
         long_budget.main(args)
@@ -351,7 +351,7 @@ def test_long_budget_trains_its_grids_then_tables_success_at_milestones_and_per_
 
 def test_long_budget_on_three_rooms_trains_its_ratios_in_one_grid_without_the_prototype(tmp_path, monkeypatch):
     calls = []
-    monkeypatch.setattr(long_budget, "run_grid", lambda config, out: calls.append((config, out)))
+    monkeypatch.setattr(long_budget, "run_grid", lambda config, out, keep_checkpoints: calls.append((config, out)))
     args = long_budget.Args(rooms=3, scale="smoke", total_steps=400, milestones=(200, 400), out=tmp_path)
     with pytest.raises(SystemExit, match="^error: out: no runs in"):
         long_budget.main(args)
@@ -382,7 +382,7 @@ def test_long_budget_on_three_rooms_trains_its_ratios_in_one_grid_without_the_pr
 
 def test_long_budget_first_seed_trains_chosen_runs_into_seed_folders_and_pools_them(tmp_path, monkeypatch):
     calls = []
-    monkeypatch.setattr(long_budget, "run_grid", lambda config, out: calls.append((config, out)))
+    monkeypatch.setattr(long_budget, "run_grid", lambda config, out, keep_checkpoints: calls.append((config, out)))
     args = long_budget.Args(rooms=3, scale="smoke", total_steps=400, milestones=(400,), out=tmp_path,
                             runs=("csac_own_scale",), first_seed=3)
     with pytest.raises(SystemExit, match="^error: runs: unknown \\['csac_own'\\]"):
@@ -391,6 +391,12 @@ def test_long_budget_first_seed_trains_chosen_runs_into_seed_folders_and_pools_t
     with pytest.raises(SystemExit, match="^error: out: no runs in"):
         long_budget.main(args)
     [(more, more_dir)] = calls  # csac_batch is not in --runs
+    kept = []
+    monkeypatch.setattr(long_budget, "run_grid", lambda config, out, keep_checkpoints: kept.append(keep_checkpoints))
+    for keep in (False, True):
+        with pytest.raises(SystemExit, match="^error: out: no runs in"):
+            long_budget.main(dataclasses.replace(args, keep_checkpoints=keep))
+    assert kept == [False, True]
     assert (more_dir, more.seeds, more.coop_scale) == (tmp_path / "csac_own_scale_seeds3to5", (3, 4, 5), "own")
     first = dataclasses.replace(more, seeds=(0, 1, 2))
     _fake_run(tmp_path / "csac_own_scale", first, {m: [1, 1] if m < 3 else [0, 0] for m in range(6)})
