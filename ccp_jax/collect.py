@@ -159,7 +159,8 @@ def make_evaluate(config: Config, env: Env, actor: Actor, episodes: int | None =
     training. Episodes run in parallel until all are done (or the time limit); a finished
     episode is frozen rather than reset.
     """
-    episodes, num_stages = episodes or config.eval_episodes, config.num_stages
+    episodes = config.eval_episodes if episodes is None else episodes
+    num_stages = config.num_stages
     v_step, v_reset = jax.vmap(env.step), jax.vmap(env.reset)
 
     def evaluate(actor_params, key: jax.Array) -> EvalMetrics:

@@ -10,26 +10,24 @@ hands over only while exploring from one that never does.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 from typing import Optional, Sequence
 
 import jax
-import numpy as np
 
 from ccp_jax import outputs
 from ccp_jax.collect import make_evaluate
-from ccp_jax.config import Config
 from ccp_jax.envs import make_env
 from ccp_jax.policy import load_actors
 
 
 def evaluate_run(run_dir: str | Path, episodes: int = 100, stochastic: bool = False, epoch: Optional[int] = None,
                  seed: int = 0) -> list[dict]:
-    """One dict per grid member: member, seed, eta, episodes, stochastic, success_rate, eval_return,
-    stage_reached_mean, stage_fraction [N], episode_length and the env's end metrics (`eval_end`)."""
+    """One dict per grid member: member, seed, eta, episodes, stochastic, then the evaluation fields of a
+    metrics.jsonl row (`outputs.eval_fields`: success_rate, eval_return, stage_reached_mean, stage_fraction [N],
+    eval_episode_length, eval_end)."""
     run_dir = Path(run_dir)
-    config = Config.from_dict(json.loads((run_dir / "config.json").read_text()))
+    config = outputs.read_config(run_dir)
     if config.algo == "tp":
         raise ValueError("algo: evaluate loads SAC-family actors (csac, naive, sac); a TP run's transition "
                          "policies are not supported")
@@ -38,22 +36,13 @@ def evaluate_run(run_dir: str | Path, episodes: int = 100, stochastic: bool = Fa
     actor, actors = load_actors(run_dir, config, epoch)  # leaves [G, N, ...]
     evaluate = make_evaluate(config, make_env(config), actor, episodes=episodes, stochastic=stochastic)
     metrics = jax.device_get(jax.jit(jax.vmap(evaluate, in_axes=(0, None)))(actors, jax.random.PRNGKey(seed)))
-    rows = []
-    for member, (eta, member_seed) in enumerate(config.grid):
-        pick = lambda x: np.asarray(x)[member]
-        rows.append({"member": member, "seed": member_seed, "eta": list(eta), "episodes": episodes,
-                     "stochastic": stochastic, "success_rate": float(pick(metrics.success_rate)),
-                     "eval_return": float(pick(metrics.eval_return)),
-                     "stage_reached_mean": float(pick(metrics.stage_reached_mean)),
-                     "stage_fraction": [float(v) for v in pick(metrics.stage_fraction)],
-                     "episode_length": float(pick(metrics.episode_length)),
-                     "eval_end": {k: float(pick(v)) for k, v in metrics.end_metrics.items()}})
-    return rows
+    return [{"member": member, "seed": member_seed, "eta": list(eta), "episodes": episodes, "stochastic": stochastic,
+             **outputs.eval_fields(metrics, member)} for member, (eta, member_seed) in enumerate(config.grid)]
 
 
 def table(rows: list[dict]) -> str:
     """A markdown table of `evaluate_run`'s rows."""
-    ends = sorted({k for r in rows for k in r["eval_end"]})
+    ends = sorted({k for r in rows for k in r.get("eval_end", {})})
     head = ["member", "seed", "eta", "success", "stage reached, fraction per stage"] + ends
     lines = ["| " + " | ".join(head) + " |", "|---" * len(head) + "|"]
     for r in rows:

@@ -32,6 +32,22 @@ def write_json(path: Path, obj: Any) -> None:
     os.replace(tmp, path)
 
 
+def read_config(run_dir: Path) -> Config:
+    """The Config a run folder's config.json holds (FileNotFoundError without one)."""
+    return Config.from_dict(json.loads((Path(run_dir) / "config.json").read_text()))
+
+
+def eval_fields(ev, member: int) -> dict:
+    """A member's evaluation fields of a metrics row from `EvalMetrics` (numpy, leading grid axis)."""
+    fields = {"success_rate": float(ev.success_rate[member]), "eval_return": float(ev.eval_return[member]),
+              "stage_reached_mean": float(ev.stage_reached_mean[member]),
+              "stage_fraction": [float(v) for v in ev.stage_fraction[member]],
+              "eval_episode_length": float(ev.episode_length[member])}
+    if ev.end_metrics:  # env diagnostics at the evaluation episodes' end, e.g. the maze's `pocket`
+        fields["eval_end"] = {k: float(v[member]) for k, v in ev.end_metrics.items()}
+    return fields
+
+
 def metric_rows(config: Config, epoch: int, metrics, wall_s: float) -> list[dict]:
     """One metrics.jsonl row per grid member from an epoch's metrics (numpy, leading grid axis).
 
@@ -40,21 +56,14 @@ def metric_rows(config: Config, epoch: int, metrics, wall_s: float) -> list[dict
     """
     rows = []
     for member, (eta, seed) in enumerate(config.grid):
-        ev = metrics.eval
         row = {
             "member": member, "seed": seed, "eta": list(eta), "algo": config.algo, "epoch": epoch,
             "env_steps": int(metrics.env_steps[member]),
-            "success_rate": float(ev.success_rate[member]),
-            "eval_return": float(ev.eval_return[member]),
-            "stage_reached_mean": float(ev.stage_reached_mean[member]),
-            "stage_fraction": [float(v) for v in ev.stage_fraction[member]],
-            "eval_episode_length": float(ev.episode_length[member]),
+            **eval_fields(metrics.eval, member),
             "train_success": float(metrics.train_success[member]),
             "train_episodes": int(metrics.train_episodes[member]),
             "train_stage_fraction": [float(v) for v in metrics.train_stage_fraction[member]],
         }
-        if ev.end_metrics:  # env diagnostics at the evaluation episodes' end, e.g. the maze's `pocket`
-            row["eval_end"] = {k: float(v[member]) for k, v in ev.end_metrics.items()}
         row.update(_tp_fields(metrics, member) if config.algo == "tp" else _sac_fields(config, metrics, member))
         row["epoch_wall_s"] = wall_s
         rows.append(row)

@@ -1,14 +1,13 @@
 """Trained policies for use outside training."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
 
-from ccp_jax import checkpoint
+from ccp_jax import checkpoint, outputs
 from ccp_jax.collect import agent_of, policy_mean_and_log_std
 from ccp_jax.config import Config
 from ccp_jax.envs import make_env
@@ -38,7 +37,7 @@ def load_policy(run_dir: str | Path, member: int = 0, epoch: int | None = None) 
     checkpoint unless `epoch` is given.
     """
     run_dir = Path(run_dir)
-    config = Config.from_dict(json.loads((run_dir / "config.json").read_text()))
+    config = outputs.read_config(run_dir)
     if not 0 <= member < config.grid_size:
         raise ValueError(f"member: the run has members 0..{config.grid_size - 1}, got {member}")
     actor, actors = load_actors(run_dir, config, epoch)

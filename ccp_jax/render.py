@@ -12,7 +12,6 @@ import argparse
 import dataclasses
 import functools
 import importlib.util
-import json
 import sys
 import warnings
 from pathlib import Path
@@ -28,7 +27,7 @@ from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 from matplotlib.patches import Circle
 
-from ccp_jax.config import Config
+from ccp_jax import outputs
 from ccp_jax.envs import make_env
 from ccp_jax.plot import group_label
 from ccp_jax.policy import load_policy
@@ -182,7 +181,7 @@ def render(run_dir: Path, member: int = 0, episodes: int = 2, out: Optional[Path
     Default output: RUN_DIR/member_K.mp4 (.gif without imageio-ffmpeg). Each episode ends
     with its last frame held for half a second. Returns (video path, episodes).
     """
-    config = Config.from_dict(json.loads((Path(run_dir) / "config.json").read_text()))
+    config = outputs.read_config(run_dir)
     env = make_env(config)
     draw = frame_renderer(env)
     policy = load_policy(run_dir, member, epoch=epoch)

@@ -186,7 +186,7 @@ def resume_config(args: Args) -> Config:
     """The resumed run's config; arguments given again must agree with it (total_steps may grow)."""
     run_dir = args.resume
     try:
-        saved = Config.from_dict(json.loads((run_dir / "config.json").read_text()))
+        saved = outputs.read_config(run_dir)
     except FileNotFoundError:
         raise ConfigError("resume", f"{run_dir} holds no run (no config.json)") from None
     except (json.JSONDecodeError, TypeError) as err:

@@ -14,7 +14,7 @@ from typing import Any, NamedTuple
 
 import jax
 
-from ccp_jax import checkpoint
+from ccp_jax import checkpoint, outputs
 from ccp_jax.config import Config, ConfigError
 from ccp_jax.networks import Actor
 from ccp_jax.policy import load_actors
@@ -32,7 +32,7 @@ def primitives_config(config: Config) -> Config:
                                         "(same env and rooms), then pass that run folder as --primitives DIR")
     run_dir = Path(config.primitives)
     try:
-        saved = Config.from_dict(json.loads((run_dir / "config.json").read_text()))
+        saved = outputs.read_config(run_dir)
     except FileNotFoundError:
         raise ConfigError("primitives", f"{run_dir} holds no run (no config.json); train the primitives with "
                                         "--algo naive --out DIR first") from None
