@@ -9,13 +9,15 @@ always the trap (the start is bottom-left). The last room has no trap; the goal 
 x >= 5N - 0.3.
 
 Physics. The robot is a disk of radius 0.15 m. An action a in [-1, 1]^2 (clipped) gives
-linear velocity v = a[0] * v_max (reverse allowed) and angular velocity w = a[1] * w_max,
-held for dt. The heading turns by w * dt; the centre moves along the straight chord
+linear velocity v = a[0] * v_max (reverse allowed; `reverse=False`: v = (a[0] + 1) / 2 * v_max,
+forwards only) and angular velocity w = a[1] * w_max, held for dt. The heading turns by w * dt; the centre moves along the straight chord
 v * dt long at the mid-step heading (midpoint integration). That chord is the swept
 path of the step and is checked exactly: the first contact time with any wall is the
 first entry of the centre into a capsule (the wall segment grown by the radius), solved
 in closed form (two side lines, two end caps). The robot stops `contact_gap` short of
-that contact and stays there for the rest of the step (no sliding). Being exact, it
+that contact and stays there for the rest of the step (no sliding; `slide=True`: the rest
+of the step's chord, less its component into the wall touched, is moved along the wall with
+the same contact check, and stops at the next wall). Being exact, it
 cannot tunnel at any speed or heading; a centre already inside a capsule (only float
 rounding can put it there) is blocked from moving further in.
 
@@ -66,6 +68,12 @@ class MazeGeometry:
     # Stop this far (along the path) before touching a wall, so float rounding cannot
     # leave the disk overlapping one.
     contact_gap: float = 1e-3
+    # Kinematics the paper leaves open ("linear velocity and angular velocity"). reverse: a[0]
+    # in [-1, 1] drives backwards too (v = a[0] v_max); otherwise only forwards, v = (a[0] + 1)/2 v_max,
+    # so a policy's zero-mean start already drives. slide: a blocked step spends what is left of
+    # it along the wall it touched (one collide-and-slide pass) instead of stopping there.
+    reverse: bool = True
+    slide: bool = False
 
     @property
     def width(self) -> float:
@@ -144,6 +152,23 @@ def _ray_distances(origin: jax.Array, angles: jax.Array, walls: jax.Array, max_r
     return jnp.minimum(jnp.min(jnp.where(hit, t, max_range), axis=-1), max_range)
 
 
+def _blocked_fraction(t_hit: jax.Array, step_len: jax.Array, gap: float) -> jax.Array:
+    """How much of a step's chord (length `step_len`) is moved when first contact is at fraction `t_hit`:
+    all of it if there is none, else up to `gap` short of the contact (never behind the start)."""
+    return jnp.where(t_hit < 1.0, jnp.maximum(t_hit - gap / jnp.maximum(step_len, 1e-12), 0.0), 1.0)
+
+
+def _wall_normal(pos: jax.Array, walls: jax.Array) -> jax.Array:
+    """Unit vector float32[2] from the point of `walls` (float32[S, 4]) nearest to `pos` towards `pos`:
+    the normal of the wall (or wall end) a disk centred at `pos` touches."""
+    a, e = walls[:, :2], walls[:, 2:] - walls[:, :2]
+    t = jnp.clip(jnp.sum((pos - a) * e, -1) / jnp.sum(e * e, -1), 0.0, 1.0)
+    away = pos - (a + t[:, None] * e)  # [S, 2]
+    dist = jnp.linalg.norm(away, axis=-1)
+    i = jnp.argmin(dist)
+    return away[i] / jnp.maximum(dist[i], 1e-12)
+
+
 def _time_of_impact(pos: jax.Array, disp: jax.Array, walls: jax.Array, radius: float) -> jax.Array:
     """First fraction t in [0, 1] of the straight move pos -> pos + disp (float32[2] each) at
     which a disk of `radius` touches a wall of `walls` (float32[S, 4]); 1 if it never does.
@@ -186,10 +211,12 @@ class Maze(Env):
     Args:
       rooms: N >= 1, the number of rooms and of stages.
       episode_length: steps after which an episode is truncated (>= 1).
+      reverse: whether a[0] < 0 drives backwards (SPEC's default) or every a[0] drives forwards.
+      slide: whether a blocked step slides along the wall it touched.
     """
 
-    def __init__(self, rooms: int = 2, episode_length: int = 1000):
-        self.geometry = MazeGeometry(rooms=_positive_int("rooms", rooms))
+    def __init__(self, rooms: int = 2, episode_length: int = 1000, reverse: bool = True, slide: bool = False):
+        self.geometry = MazeGeometry(rooms=_positive_int("rooms", rooms), reverse=bool(reverse), slide=bool(slide))
         self.episode_length = _positive_int("episode_length", episode_length)
         self._walls = maze_walls(self.geometry)
         g = self.geometry
@@ -252,14 +279,21 @@ class Maze(Env):
         g = self.geometry
         pose: RobotPose = state.pipeline_state
         act = jnp.clip(jnp.asarray(action, jnp.float32), -1.0, 1.0)
-        v, w = act[0] * g.v_max, act[1] * g.w_max
+        v = (act[0] if g.reverse else 0.5 * (act[0] + 1.0)) * g.v_max
+        w = act[1] * g.w_max
         mid_heading = pose.heading + 0.5 * w * g.dt
         disp = v * g.dt * jnp.stack([jnp.cos(mid_heading), jnp.sin(mid_heading)])
-        t_hit = _time_of_impact(pose.pos, disp, jnp.asarray(self._walls), g.robot_radius)
-        step_len = jnp.linalg.norm(disp)
-        # Blocked moves stop contact_gap short of the contact point (never behind the start).
-        frac = jnp.where(t_hit < 1.0, jnp.maximum(t_hit - g.contact_gap / jnp.maximum(step_len, 1e-12), 0.0), 1.0)
-        new_pose = RobotPose(pos=pose.pos + frac * disp, heading=_wrap(pose.heading + w * g.dt))
+        walls = jnp.asarray(self._walls)
+        t_hit = _time_of_impact(pose.pos, disp, walls, g.robot_radius)
+        frac = _blocked_fraction(t_hit, jnp.linalg.norm(disp), g.contact_gap)
+        pos = pose.pos + frac * disp
+        if g.slide:
+            rest = (1.0 - frac) * disp  # zero unless the step was blocked
+            normal = _wall_normal(pos, walls)
+            along = rest - jnp.minimum(jnp.dot(rest, normal), 0.0) * normal
+            t_slide = _time_of_impact(pos, along, walls, g.robot_radius)
+            pos = pos + _blocked_fraction(t_slide, jnp.linalg.norm(along), g.contact_gap) * along
+        new_pose = RobotPose(pos=pos, heading=_wrap(pose.heading + w * g.dt))
 
         stage, rewards, success = self._stage_and_rewards(new_pose.pos[0], state.info["stage"])
         steps = state.info["steps"] + 1

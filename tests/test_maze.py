@@ -40,12 +40,13 @@ class Compiled:
 
 @pytest.fixture(scope="module")
 def mazes():
-    cache: dict[int, Compiled] = {}
+    cache: dict[tuple, Compiled] = {}
 
-    def get(rooms: int) -> Compiled:
-        if rooms not in cache:
-            cache[rooms] = Compiled(Maze(rooms=rooms))
-        return cache[rooms]
+    def get(rooms: int, **kinematics) -> Compiled:
+        key = (rooms, *sorted(kinematics.items()))
+        if key not in cache:
+            cache[key] = Compiled(Maze(rooms=rooms, **kinematics))
+        return cache[key]
 
     return get
 
@@ -135,8 +136,9 @@ def test_properties_and_two_room_layout():
 
 # ---------------------------------------------------------------- collisions
 
-def test_walls_block_at_full_speed_from_every_heading(mazes):
-    c = mazes(3)  # both a low and a high pocket
+@pytest.mark.parametrize("slide", [False, True])
+def test_walls_block_at_full_speed_from_every_heading(mazes, slide):
+    c = mazes(3, slide=slide)  # both a low and a high pocket
     walls = c.env.walls
     # Starts 0.3 m either side of points along every wall, and around every wall end.
     a, b = walls[:, :2].astype(np.float64), walls[:, 2:].astype(np.float64)
@@ -321,6 +323,31 @@ def test_kinematics_of_one_free_step(mazes):
     # Headings wrap to [-pi, pi).
     turned = c.step(c.env.state_at(jnp.array([2.5, 2.5]), jnp.float32(3.0)), jnp.array([0.0, 1.0]))
     assert float(turned.pipeline_state.heading) == pytest.approx(3.4 - 2 * math.pi, abs=1e-6)
+
+
+def test_forward_only_kinematics(mazes):
+    """reverse=False: v = (a[0] + 1)/2 v_max, so a[0] = -1 stands still and 0 drives at half speed."""
+    c = mazes(2, reverse=False)
+    s = c.env.state_at(jnp.array([2.5, 2.5]), jnp.float32(0.3))
+    for a0, v in ((-1.0, 0.0), (0.0, 0.5), (1.0, 1.0), (-3.0, 0.0)):
+        nxt = c.step(s, jnp.array([a0, 0.0], jnp.float32))
+        np.testing.assert_allclose(nxt.pipeline_state.pos, [2.5 + 0.2 * v * math.cos(0.3), 2.5 + 0.2 * v * math.sin(0.3)],
+                                   atol=1e-6)
+
+
+def test_blocked_step_slides_along_the_wall(mazes):
+    """slide=True: a step into the wall x = 5 at 45 degrees keeps its component along the wall."""
+    start, heading = jnp.array([4.75, 0.5]), jnp.float32(math.pi / 4)
+    stop = mazes(2).step(mazes(2).env.state_at(start, heading), jnp.array([1.0, 0.0])).pipeline_state.pos
+    slid = mazes(2, slide=True).step(mazes(2, slide=True).env.state_at(start, heading), jnp.array([1.0, 0.0])).pipeline_state.pos
+    # Contact after 0.1 m in x (the centre reaches 5 - R = 4.85), i.e. a 0.1 sqrt(2) m chord of the step's 0.2 m.
+    np.testing.assert_allclose(stop, [4.85, 0.6], atol=2e-3)
+    # The remaining (0.2 - 0.1 sqrt(2)) m of chord, less its x part, moves up the wall.
+    rest_y = (0.2 - 0.1 * math.sqrt(2)) / math.sqrt(2)
+    np.testing.assert_allclose(slid, [4.85, 0.6 + rest_y], atol=2e-3)
+    # Head-on there is nothing along the wall to keep.
+    head_on = mazes(2, slide=True).step(mazes(2, slide=True).env.state_at(start, jnp.float32(0.0)), jnp.array([1.0, 0.0]))
+    np.testing.assert_allclose(head_on.pipeline_state.pos, [4.85, 0.5], atol=2e-3)
 
 
 def test_truncation_at_episode_length():
