@@ -59,6 +59,10 @@ class Config:
     # Task.
     env: str = "maze"
     rooms: int = 2
+    # The maze robot's kinematics, which the paper leaves open (envs_mjx.maze.MazeGeometry): whether a[0] < 0
+    # drives backwards (else v = (a[0] + 1)/2 v_max, forwards only), and whether a blocked step slides along the wall.
+    maze_reverse: bool = True
+    maze_slide: bool = False
     algo: Algo = "csac"
     # Grid: every ratio vector is trained with every seed, in one vmapped program.
     # A ratio is a number in [0, 1] or "auto" (η* from running critic ranges).
@@ -229,6 +233,11 @@ class Config:
             raise ConfigError("env", f"unknown env {self.env!r}; choose one of {ENV_NAMES} or 'module.path:factory'")
         if self.algo not in ALGOS:
             raise ConfigError("algo", f"unknown algo {self.algo!r}; choose one of {ALGOS}")
+        for name, default in (("maze_reverse", True), ("maze_slide", False)):
+            if not isinstance(getattr(self, name), bool):
+                raise ConfigError(name, f"must be true or false, got {getattr(self, name)!r}")
+            if self.env != "maze" and getattr(self, name) != default:
+                raise ConfigError(name, f"is an option of the maze; env {self.env!r} has no such setting")
         if not isinstance(self.rooms, int) or self.rooms < 2:
             raise ConfigError("rooms", f"must be an integer >= 2, got {self.rooms!r}")
         for name in ("total_steps", "steps_per_epoch", "train_loops_per_epoch", "train_cycles_per_epoch", "num_envs",

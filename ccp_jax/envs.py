@@ -19,7 +19,8 @@ def make_env(config: "Config") -> "Env":
     if config.env == "maze":
         from envs_mjx.maze import Maze
 
-        return Maze(rooms=config.rooms, episode_length=config.max_episode_steps)
+        return Maze(rooms=config.rooms, episode_length=config.max_episode_steps, reverse=config.maze_reverse,
+                    slide=config.maze_slide)
     if config.env == "peg":
         from envs_mjx.peg_in_hole import PegInHole
 

@@ -30,6 +30,9 @@ from ccp_jax.train import Args, config_from_args
     (dict(initial_alpha=0.0), "initial_alpha"),
     (dict(initial_alpha=float("inf")), "initial_alpha"),
     (dict(no_such_field=1), "no_such_field"),
+    (dict(env="peg", maze_slide=True), "maze_slide"),  # a maze option on another env
+    (dict(env="peg", maze_reverse=False), "maze_reverse"),
+    (dict(maze_reverse="no"), "maze_reverse"),
 ])
 def test_bad_config_names_the_field(overrides, field):
     with pytest.raises(ConfigError) as err:
@@ -64,6 +67,10 @@ def test_cli_arguments_resolve():
     c = config_from_args(Args(rooms=3, eta_per_agent=("0.1,1.0", "0.5,0.5"), seeds=2, preset="tiny"))
     assert c.etas == ((0.1, 1.0), (0.5, 0.5)) and c.seeds == (0, 1) and c.grid_size == 4
     assert config_from_args(Args(target_entropy=-0.5, preset="tiny")).target_entropy == -0.5
+    robot = config_from_args(Args(maze_reverse=False, maze_slide=True, preset="tiny"))
+    from ccp_jax.envs import make_env
+    assert (make_env(robot).geometry.reverse, make_env(robot).geometry.slide) == (False, True)
+    assert (make_env(make_config("tiny")).geometry.reverse, make_env(make_config("tiny")).geometry.slide) == (True, False)
     base = make_config("tiny")
     other = base.replace(total_steps=800, normaliser="floor", gamma=0.9)
     assert base.differing(other) == ["total_steps", "gamma", "normaliser"]  # declaration order

@@ -43,6 +43,10 @@ def primitives_config(config: Config) -> Config:
     if saved.env != config.env or saved.num_stages != config.num_stages:
         raise ConfigError("primitives", f"{run_dir} was trained on {saved.env} with {saved.num_stages} stages; "
                                         f"this run is {config.env} with {config.num_stages} stages")
+    for name in ("maze_reverse", "maze_slide"):  # primitives trained on other kinematics would act on another robot
+        if getattr(saved, name) != getattr(config, name):
+            raise ConfigError(name, f"{run_dir} was trained with {name} = {getattr(saved, name)}, "
+                                    f"this run has {getattr(config, name)}")
     if not 0 <= config.primitives_member < saved.grid_size:
         raise ConfigError("primitives_member", f"{run_dir} has members 0..{saved.grid_size - 1}, "
                                                f"got {config.primitives_member}")
