@@ -26,6 +26,8 @@ NetworkInit = Literal["flax", "rlkit"]
 NETWORK_INITS = ("flax", "rlkit")
 CoopScale = Literal["unit", "own"]
 COOP_SCALES = ("unit", "own")
+# The maze kinematics of every run before config.json recorded them (sessions 1-27): reversing, stopping at walls.
+LEGACY_MAZE = {"maze_reverse": True, "maze_slide": False}
 AUTO = "auto"  # a ratio estimated during training (η*), see `Config.eta_auto_range`
 
 
@@ -61,8 +63,9 @@ class Config:
     rooms: int = 2
     # The maze robot's kinematics, which the paper leaves open (envs_mjx.maze.MazeGeometry): whether a[0] < 0
     # drives backwards (else v = (a[0] + 1)/2 v_max, forwards only), and whether a blocked step slides along the wall.
-    maze_reverse: bool = True
-    maze_slide: bool = False
+    # A config.json without them is a maze run from before they existed: see LEGACY_MAZE.
+    maze_reverse: bool = False
+    maze_slide: bool = True
     algo: Algo = "csac"
     # Grid: every ratio vector is trained with every seed, in one vmapped program.
     # A ratio is a number in [0, 1] or "auto" (η* from running critic ranges).
@@ -215,7 +218,10 @@ class Config:
         def tupled(x):
             return tuple(tupled(v) for v in x) if isinstance(x, list) else x
         names = {f.name for f in dataclasses.fields(cls)}
-        return cls(**{k: tupled(v) for k, v in d.items() if k in names})
+        fields = {k: tupled(v) for k, v in d.items() if k in names}
+        if fields.get("env", cls.env) == "maze":
+            fields = {**LEGACY_MAZE, **fields}
+        return cls(**fields)
 
     def replace(self, **changes) -> "Config":
         return dataclasses.replace(self, **changes)
@@ -233,10 +239,10 @@ class Config:
             raise ConfigError("env", f"unknown env {self.env!r}; choose one of {ENV_NAMES} or 'module.path:factory'")
         if self.algo not in ALGOS:
             raise ConfigError("algo", f"unknown algo {self.algo!r}; choose one of {ALGOS}")
-        for name, default in (("maze_reverse", True), ("maze_slide", False)):
+        for name in ("maze_reverse", "maze_slide"):
             if not isinstance(getattr(self, name), bool):
                 raise ConfigError(name, f"must be true or false, got {getattr(self, name)!r}")
-            if self.env != "maze" and getattr(self, name) != default:
+            if self.env != "maze" and getattr(self, name) != getattr(Config, name):
                 raise ConfigError(name, f"is an option of the maze; env {self.env!r} has no such setting")
         if not isinstance(self.rooms, int) or self.rooms < 2:
             raise ConfigError("rooms", f"must be an integer >= 2, got {self.rooms!r}")

@@ -9,15 +9,15 @@ always the trap (the start is bottom-left). The last room has no trap; the goal 
 x >= 5N - 0.3.
 
 Physics. The robot is a disk of radius 0.15 m. An action a in [-1, 1]^2 (clipped) gives
-linear velocity v = a[0] * v_max (reverse allowed; `reverse=False`: v = (a[0] + 1) / 2 * v_max,
-forwards only) and angular velocity w = a[1] * w_max, held for dt. The heading turns by w * dt; the centre moves along the straight chord
+linear velocity v = (a[0] + 1) / 2 * v_max (forwards only; `reverse=True`: v = a[0] * v_max,
+backwards too) and angular velocity w = a[1] * w_max, held for dt. The heading turns by w * dt; the centre moves along the straight chord
 v * dt long at the mid-step heading (midpoint integration). That chord is the swept
 path of the step and is checked exactly: the first contact time with any wall is the
 first entry of the centre into a capsule (the wall segment grown by the radius), solved
 in closed form (two side lines, two end caps). The robot stops `contact_gap` short of
-that contact and stays there for the rest of the step (no sliding; `slide=True`: the rest
-of the step's chord, less its component into the wall touched, is moved along the wall with
-the same contact check, and stops at the next wall). Being exact, it
+that contact; the rest of the step's chord, less its component into the wall touched, is
+moved along the wall with the same contact check, and stops at the next wall (one
+collide-and-slide pass; `slide=False`: the robot stays at the contact for the rest of the step). Being exact, it
 cannot tunnel at any speed or heading; a centre already inside a capsule (only float
 rounding can put it there) is blocked from moving further in.
 
@@ -72,8 +72,10 @@ class MazeGeometry:
     # in [-1, 1] drives backwards too (v = a[0] v_max); otherwise only forwards, v = (a[0] + 1)/2 v_max,
     # so a policy's zero-mean start already drives. slide: a blocked step spends what is left of
     # it along the wall it touched (one collide-and-slide pass) instead of stopping there.
-    reverse: bool = True
-    slide: bool = False
+    # The defaults are the ones that reproduce SPEC §7's reference table (experiments/yardstick.md,
+    # session 28); sessions 1-27 ran reverse=True, slide=False.
+    reverse: bool = False
+    slide: bool = True
 
     @property
     def width(self) -> float:
@@ -211,11 +213,11 @@ class Maze(Env):
     Args:
       rooms: N >= 1, the number of rooms and of stages.
       episode_length: steps after which an episode is truncated (>= 1).
-      reverse: whether a[0] < 0 drives backwards (SPEC's default) or every a[0] drives forwards.
-      slide: whether a blocked step slides along the wall it touched.
+      reverse: whether a[0] < 0 drives backwards, or (the default) every a[0] drives forwards.
+      slide: whether a blocked step slides along the wall it touched (the default) or stops there.
     """
 
-    def __init__(self, rooms: int = 2, episode_length: int = 1000, reverse: bool = True, slide: bool = False):
+    def __init__(self, rooms: int = 2, episode_length: int = 1000, reverse: bool = False, slide: bool = True):
         self.geometry = MazeGeometry(rooms=_positive_int("rooms", rooms), reverse=bool(reverse), slide=bool(slide))
         self.episode_length = _positive_int("episode_length", episode_length)
         self._walls = maze_walls(self.geometry)

@@ -30,8 +30,8 @@ from ccp_jax.train import Args, config_from_args
     (dict(initial_alpha=0.0), "initial_alpha"),
     (dict(initial_alpha=float("inf")), "initial_alpha"),
     (dict(no_such_field=1), "no_such_field"),
-    (dict(env="peg", maze_slide=True), "maze_slide"),  # a maze option on another env
-    (dict(env="peg", maze_reverse=False), "maze_reverse"),
+    (dict(env="peg", maze_slide=False), "maze_slide"),  # a maze option on another env
+    (dict(env="peg", maze_reverse=True), "maze_reverse"),
     (dict(maze_reverse="no"), "maze_reverse"),
 ])
 def test_bad_config_names_the_field(overrides, field):
@@ -67,10 +67,10 @@ def test_cli_arguments_resolve():
     c = config_from_args(Args(rooms=3, eta_per_agent=("0.1,1.0", "0.5,0.5"), seeds=2, preset="tiny"))
     assert c.etas == ((0.1, 1.0), (0.5, 0.5)) and c.seeds == (0, 1) and c.grid_size == 4
     assert config_from_args(Args(target_entropy=-0.5, preset="tiny")).target_entropy == -0.5
-    robot = config_from_args(Args(maze_reverse=False, maze_slide=True, preset="tiny"))
+    robot = config_from_args(Args(maze_reverse=True, maze_slide=False, preset="tiny"))
     from ccp_jax.envs import make_env
-    assert (make_env(robot).geometry.reverse, make_env(robot).geometry.slide) == (False, True)
-    assert (make_env(make_config("tiny")).geometry.reverse, make_env(make_config("tiny")).geometry.slide) == (True, False)
+    assert (make_env(robot).geometry.reverse, make_env(robot).geometry.slide) == (True, False)
+    assert (make_env(make_config("tiny")).geometry.reverse, make_env(make_config("tiny")).geometry.slide) == (False, True)
     base = make_config("tiny")
     other = base.replace(total_steps=800, normaliser="floor", gamma=0.9)
     assert base.differing(other) == ["total_steps", "gamma", "normaliser"]  # declaration order
@@ -101,3 +101,16 @@ def test_compile_cache_keeps_the_users_folder_else_uses_xdg_cache(tmp_path, monk
     finally:
         jax.config.update("jax_compilation_cache_dir", before)
     assert Args().compile_cache  # on by default in the CLI
+
+
+def test_a_config_json_from_before_the_kinematics_fields_reads_as_the_robot_it_trained():
+    """Runs of sessions 1-27 wrote no maze_reverse / maze_slide: they drove backwards and stopped at walls."""
+    from ccp_jax.config import Config
+    old_maze = {k: v for k, v in make_config("tiny").to_dict().items() if k not in ("maze_reverse", "maze_slide")}
+    legacy = Config.from_dict(old_maze)
+    assert (legacy.maze_reverse, legacy.maze_slide) == (True, False)
+    assert legacy.differing(make_config("tiny")) == ["maze_reverse", "maze_slide"]  # so train --resume keeps them
+    written = Config.from_dict(make_config("tiny").to_dict())  # a file that records them keeps its values
+    assert (written.maze_reverse, written.maze_slide) == (False, True)
+    old_peg = {k: v for k, v in make_config("tiny", env="peg").to_dict().items() if k not in ("maze_reverse", "maze_slide")}
+    assert Config.from_dict(old_peg) == make_config("tiny", env="peg")  # other envs have no kinematics to recall

@@ -138,7 +138,7 @@ def test_properties_and_two_room_layout():
 
 @pytest.mark.parametrize("slide", [False, True])
 def test_walls_block_at_full_speed_from_every_heading(mazes, slide):
-    c = mazes(3, slide=slide)  # both a low and a high pocket
+    c = mazes(3, reverse=True, slide=slide)  # both a low and a high pocket; reversing drives into walls behind too
     walls = c.env.walls
     # Starts 0.3 m either side of points along every wall, and around every wall end.
     a, b = walls[:, :2].astype(np.float64), walls[:, 2:].astype(np.float64)
@@ -311,8 +311,8 @@ def test_rewards_at_hand_picked_states(mazes):
 
 
 def test_kinematics_of_one_free_step(mazes):
-    """Heading turns by w dt; the centre moves v dt along the mid-step heading; actions clip."""
-    c = mazes(2)
+    """reverse=True: heading turns by w dt; the centre moves v dt along the mid-step heading; actions clip."""
+    c = mazes(2, reverse=True)
     s = c.env.state_at(jnp.array([2.5, 2.5]), jnp.float32(0.3))
     for action, v, w in (([1.0, 1.0], 1.0, 2.0), ([2.0, -3.0], 1.0, -2.0), ([-0.5, 0.25], -0.5, 0.5)):
         nxt = c.step(s, jnp.array(action, jnp.float32))
@@ -336,17 +336,18 @@ def test_forward_only_kinematics(mazes):
 
 
 def test_blocked_step_slides_along_the_wall(mazes):
-    """slide=True: a step into the wall x = 5 at 45 degrees keeps its component along the wall."""
+    """slide=True: a step into the wall x = 5 at 45 degrees keeps its component along the wall (False: stops)."""
     start, heading = jnp.array([4.75, 0.5]), jnp.float32(math.pi / 4)
-    stop = mazes(2).step(mazes(2).env.state_at(start, heading), jnp.array([1.0, 0.0])).pipeline_state.pos
-    slid = mazes(2, slide=True).step(mazes(2, slide=True).env.state_at(start, heading), jnp.array([1.0, 0.0])).pipeline_state.pos
+    stopping, sliding = mazes(2, slide=False), mazes(2, slide=True)
+    stop = stopping.step(stopping.env.state_at(start, heading), jnp.array([1.0, 0.0])).pipeline_state.pos
+    slid = sliding.step(sliding.env.state_at(start, heading), jnp.array([1.0, 0.0])).pipeline_state.pos
     # Contact after 0.1 m in x (the centre reaches 5 - R = 4.85), i.e. a 0.1 sqrt(2) m chord of the step's 0.2 m.
     np.testing.assert_allclose(stop, [4.85, 0.6], atol=2e-3)
     # The remaining (0.2 - 0.1 sqrt(2)) m of chord, less its x part, moves up the wall.
     rest_y = (0.2 - 0.1 * math.sqrt(2)) / math.sqrt(2)
     np.testing.assert_allclose(slid, [4.85, 0.6 + rest_y], atol=2e-3)
     # Head-on there is nothing along the wall to keep.
-    head_on = mazes(2, slide=True).step(mazes(2, slide=True).env.state_at(start, jnp.float32(0.0)), jnp.array([1.0, 0.0]))
+    head_on = sliding.step(sliding.env.state_at(start, jnp.float32(0.0)), jnp.array([1.0, 0.0]))
     np.testing.assert_allclose(head_on.pipeline_state.pos, [4.85, 0.5], atol=2e-3)
 
 

@@ -282,7 +282,7 @@ def _fake_run(path, **fields):
     ("missing", [], "primitives"),
     ("naive3", [], "primitives"),  # 3-room primitives for a 2-room run
     ("csac", [], "primitives"),  # not a naive run
-    ("naive_slide", [], "maze_slide"),  # primitives of a robot that slides along walls
+    ("naive_stop", [], "maze_slide"),  # primitives of a robot that stops at walls
     ("naive2", ["--primitives-member", "5"], "primitives_member"),
     ("naive2", [], "primitives"),  # no checkpoints/
     ("naive2", ["--tp-max-steps", "0"], "tp_max_steps"),
@@ -290,7 +290,7 @@ def _fake_run(path, **fields):
 ])
 def test_bad_tp_input_fails_before_compiling(tmp_path, setup, argv, field):
     runs = {"naive3": dict(algo="naive", rooms=3), "csac": dict(algo="csac"), "naive2": dict(algo="naive"),
-            "naive_slide": dict(algo="naive", maze_slide=True)}
+            "naive_stop": dict(algo="naive", maze_slide=False)}
     args = ["--preset", "tiny", "--algo", "tp", "--out", str(tmp_path / "out"), "--no-progress"] + argv
     if setup == "missing":
         args += ["--primitives", str(tmp_path / "nowhere")]
