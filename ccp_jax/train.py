@@ -73,9 +73,9 @@ class Args:
     checkpoint_every: int = 10
     """Save a checkpoint every K epochs (and always after the last); 0: only after the last."""
     maze_reverse: Optional[bool] = None
-    """Maze: a[0] < 0 drives the robot backwards (default True); False: v = (a[0] + 1)/2 v_max, forwards only."""
+    """Maze: True lets a[0] < 0 drive the robot backwards (v = a[0] v_max); default False: v = (a[0] + 1)/2 v_max."""
     maze_slide: Optional[bool] = None
-    """Maze: a step blocked by a wall slides along it (default False: it stops there)."""
+    """Maze: a step blocked by a wall slides along it (default True; False: it stops there)."""
     num_envs: Optional[int] = None
     hidden: Optional[tuple[int, ...]] = None
     network_init: Optional[NetworkInit] = None
@@ -139,8 +139,8 @@ class Args:
     process_id: Optional[int] = None
 
 
-OVERRIDES = ("maze_reverse", "maze_slide", "total_steps", "num_envs", "hidden", "network_init", "batch_size", "buffer_size", "steps_per_epoch",
-             "train_loops_per_epoch", "train_cycles_per_epoch", "eval_episodes", "max_episode_steps", "gamma", "absorbing_stages",
+OVERRIDES = ("maze_reverse", "maze_slide", "total_steps", "num_envs", "hidden", "network_init", "batch_size",
+             "buffer_size", "steps_per_epoch", "train_loops_per_epoch", "train_cycles_per_epoch", "eval_episodes", "max_episode_steps", "gamma", "absorbing_stages",
              "absorbing_success", "tanh_log_prob", "normaliser", "norm_floor", "norm_ema_rate", "coop_scale", "next_action", "tau",
              "actor_lr", "critic_lr", "alpha_lr", "target_entropy", "initial_alpha", "start_steps", "normalise_last", "eta_auto_range",
              "primitives_member", "tp_max_steps", "tp_init_episodes", "tp_prox_updates", "tp_ppo_epochs", "tp_buffer_size")
