@@ -120,7 +120,7 @@ class Args:
     tanh_log_prob: Optional[TanhLogProb] = None
     """The tanh correction in log π: exact (default) or rlkit (RLkit's log(1 − tanh² + 1e-6), capped at saturation)."""
     cpu_devices: CpuDevices = "auto"
-    """On a CPU: split it into this many XLA devices, so grid members train side by side (auto: twice the cores; each grid takes the count that wastes least, ccp_jax.devices.grid_devices; 1: the whole CPU as one device). A count set in $XLA_FLAGS wins. Does not change results beyond float rounding."""
+    """On a CPU: split it into this many XLA devices, so grid members train side by side (auto: the count that wastes least for this grid, of up to twice the cores, ccp_jax.devices.grid_devices: one run keeps the whole CPU as one device, 3 runs on 2 cores take 3; 1: the whole CPU as one device). A count set in $XLA_FLAGS wins. Does not change results beyond float rounding."""
     members_at_once: Optional[int] = None
     """Grid members each device advances together (vmapped); the rest run one group after another in the same program. Default: 1 on CPU (fastest there), all on GPU/TPU. Does not change results beyond float rounding."""
     progress: bool = True
@@ -184,6 +184,18 @@ def prepare_out(out: Optional[Path], config: Config) -> Path:
         raise ConfigError("out", f"{out} already holds a run; choose another --out, or continue it with --resume {out}")
     out.mkdir(parents=True, exist_ok=True)
     return out
+
+
+def planned_grid_size(args: Args) -> Optional[int]:
+    """The number of runs the arguments ask for, read without starting JAX (the CPU split must come first);
+    None where it cannot be read yet (an unreadable --resume folder: `resume_config` names the fault)."""
+    if args.resume is not None:
+        try:
+            return outputs.read_config(args.resume).grid_size
+        except (OSError, ValueError, TypeError, KeyError):  # JSON and config faults are ValueErrors
+            return None
+    ratios = len(args.eta_per_agent if args.eta_per_agent is not None else args.eta or ("0.1",))
+    return max(1, ratios * (args.seeds or 1))
 
 
 def resume_config(args: Args) -> Config:
@@ -300,7 +312,7 @@ def main(argv: Optional[list[str]] = None) -> dict:
     args = tyro.cli(Args, args=argv)
     if args.cpu_devices != "auto" and args.cpu_devices < 1:
         raise ConfigError("cpu_devices", f"must be >= 1 or auto, got {args.cpu_devices}")
-    split_host_cpu(args.cpu_devices)  # before anything starts JAX
+    split_host_cpu(args.cpu_devices, planned_grid_size(args))  # before anything starts JAX
     if args.distributed:
         jax.distributed.initialize(coordinator_address=args.coordinator, num_processes=args.num_processes,
                                    process_id=args.process_id)

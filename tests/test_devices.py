@@ -10,7 +10,8 @@ import jax
 import numpy as np
 import pytest
 
-from ccp_jax import devices, load_policy
+from ccp_jax import devices, load_policy, train
+from ccp_jax.config import ConfigError, make_config
 
 
 def test_cpu_device_flags_adds_a_count_and_keeps_the_users():
@@ -48,6 +49,29 @@ def test_an_accelerator_grid_uses_the_fewest_devices_with_the_same_share(grid, u
     """Share per device = ceil(grid / 4); devices = ceil(grid / share): 5 members take 2 + 2 + 1, not 2 + 1 + 1 + 1."""
     four = fake("gpu", 4)
     assert devices.grid_devices(grid, four) == four[:used]
+
+
+@pytest.mark.parametrize("cores, grid, count", [(2, 1, 1), (2, 2, 2), (2, 3, 3), (2, 4, 2), (2, 6, 2), (2, 12, 2),
+                                               (2, 18, 2), (4, 6, 6), (4, 16, 4), (1, 5, 1)])
+def test_auto_exposes_the_devices_the_grid_uses(cores, grid, count):
+    """"auto" splits the CPU into exactly the devices `grid_devices` will pick, so none sits idle (an idle one
+    slowed the others: ccp_jax.devices.split_host_cpu)."""
+    assert devices.cpu_devices_for(grid, cores) == count
+    offered = fake("cpu", count)
+    assert devices.grid_devices(grid, offered, cores=cores) == offered  # picked from the split: all of it
+    assert devices.grid_devices(grid, fake("cpu", 2 * cores), cores=cores) == fake("cpu", count)  # = from 2 x cores
+
+
+def test_cli_splits_the_cpu_for_the_grid_it_was_asked_for(monkeypatch, tmp_path):
+    calls = []
+    monkeypatch.setattr(train, "split_host_cpu", lambda devices, grid_size: calls.append((devices, grid_size)))
+    for argv, planned in ((["--eta", "0.1", "0.5", "auto", "--seeds", "5"], 15), (["--eta-per-agent", "0.1,1"], 1),
+                          ([], 1), (["--seeds", "3", "--cpu-devices", "2"], 3), (["--resume", str(tmp_path)], None)):
+        with pytest.raises(ConfigError, match="^checkpoint_every"):  # stops right after the split
+            train.main(argv + ["--checkpoint-every", "-1"])
+        assert calls.pop() == (2 if "--cpu-devices" in argv else "auto", planned)
+    (tmp_path / "config.json").write_text(json.dumps(make_config("tiny", seeds=(0, 1), etas=((0.1,), (0.9,))).to_dict()))
+    assert train.planned_grid_size(train.Args(resume=tmp_path)) == 4  # a resume: the saved grid's size
 
 
 def test_split_host_cpu_changes_nothing_once_jax_runs(monkeypatch):

@@ -478,3 +478,16 @@ def test_scripts_end_bad_input_in_one_line_naming_the_field(tmp_path, monkeypatc
                           capture_output=True, text=True)
     assert done.returncode == 1 and "Traceback" not in done.stderr
     assert done.stderr.startswith("error: ") and "differ in normaliser" in done.stderr
+
+
+def test_vs_prototype_reports_times_against_the_prototype_and_scaled_to_spec_roof():
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments" / "bench"))
+    import vs_prototype as vp
+
+    assert vp.scaled(3.0, 74.0) == pytest.approx(1.5)  # half SPEC §0's roof: twice as fast there
+    text = vp.report([dict(name="3 rooms, one run", devices=1, epochs=[2.0, 3.0, 9.0], roofs=[74.0, 74.0]),
+                      dict(name="2 rooms, grid of 3, one device", devices=1, epochs=[6.0], roofs=[148.0, 148.0])])
+    # median 3.0 s against 2.5 s: 1.20; at SPEC §0's roof 1.50 s, 0.60 of the prototype's
+    assert "| 3 rooms, one run | one run | 1 | 3.00 (2.00–9.00) | 74 | 2.5 | 1.20 | 1.50 | 0.60 |" in text
+    assert "| 2 rooms, grid of 3 | one device, vmapped | 1 | 6.00 (6.00–6.00) | 148 | 4.0 | 1.50 | 6.00 | 1.50 |" in text
+    assert set(vp.CONFIGS) >= {"3 rooms, one run", "2 rooms, grid of 3"}  # every prototype figure is measured

@@ -9,6 +9,7 @@ from __future__ import annotations
 import os
 import statistics
 import time
+from typing import Sequence
 from unittest import mock
 
 import jax
@@ -75,18 +76,21 @@ class TimedEpochs:
 class TimedGrid(TimedEpochs):
     """The grid trainer of `config`, built, compiled and warmed; `epoch()` runs and times one `train_step`.
 
+    `devices`: where the grid trains (default: those `grid_devices` picks).
+
     `first`: the compiling epoch's seconds; `compile_s`: first minus a warm epoch; `retraced`: leaves
     whose type the first epoch changed (then `second` is the recompiling epoch's seconds).
     """
 
     def __init__(self, config: Config, env: Env | None = None, evaluate: bool = True,
-                 members_at_once: int | None = None):
+                 members_at_once: int | None = None, devices: Sequence[jax.Device] | None = None):
         env = env or make_env(config)
+        build = lambda: make_grid_train(config, env, devices, members_at_once=members_at_once)
         if evaluate:
-            self.trainer = make_grid_train(config, env, members_at_once=members_at_once)
+            self.trainer = build()
         else:
             with mock.patch.object(trainer_module, "make_evaluate", no_eval):
-                self.trainer = make_grid_train(config, env, members_at_once=members_at_once)
+                self.trainer = build()
         self.eta, seeds = (jnp.asarray(x) for x in config.grid_arrays())
         self.state = jax.block_until_ready(self.trainer.init(seeds))
         self.times: list[float] = []
