@@ -146,6 +146,9 @@ OVERRIDES = ("maze_reverse", "maze_slide", "total_steps", "num_envs", "hidden", 
              "primitives_member", "tp_max_steps", "tp_init_episodes", "tp_prox_updates", "tp_ppo_epochs", "tp_buffer_size")
 
 
+DEFAULT_ETA = ("0.1",)  # --eta when neither ratio flag is given (the paper's best 3-room ratio)
+
+
 def config_from_args(args: Args, base: Optional[Config] = None) -> Config:
     """The validated `Config` the arguments describe, on top of `base` (a resumed run) or the preset."""
     if args.seeds is not None and args.seeds < 1:
@@ -162,7 +165,7 @@ def config_from_args(args: Args, base: Optional[Config] = None) -> Config:
     if args.eta_per_agent is not None:
         explicit["etas"] = tuple(parse_eta_vector(t) for t in args.eta_per_agent)
     elif args.eta is not None or base is None:
-        explicit["etas"] = tuple((parse_eta(x),) for x in (args.eta or ("0.1",)))
+        explicit["etas"] = tuple((parse_eta(x),) for x in (args.eta or DEFAULT_ETA))
     if args.seeds is not None or base is None:
         explicit["seeds"] = tuple(range(args.first_seed, args.first_seed + (args.seeds or 1)))
     if args.primitives is not None:  # absolute, so a resumed run finds it from any folder
@@ -194,7 +197,7 @@ def planned_grid_size(args: Args) -> Optional[int]:
             return outputs.read_config(args.resume).grid_size
         except (OSError, ValueError, TypeError, KeyError):  # JSON and config faults are ValueErrors
             return None
-    ratios = len(args.eta_per_agent if args.eta_per_agent is not None else args.eta or ("0.1",))
+    ratios = len(args.eta_per_agent if args.eta_per_agent is not None else args.eta or DEFAULT_ETA)
     return max(1, ratios * (args.seeds or 1))
 
 

@@ -31,21 +31,34 @@ import statistics
 import subprocess
 import sys
 from pathlib import Path
+from typing import NamedTuple
 
 import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
+from ccp_jax.devices import CpuDevices, split_host_cpu  # noqa: E402
 from grid_scaling import EpochShape, config_for  # noqa: E402
 
 SPEC_ROOF_GFLOPS = 148.0  # SPEC §0: the 256-wide jnp.dot roof of the machine SPEC §7 was measured on
-PROTOTYPE_S = {"3 rooms, one run": 2.5, "2 rooms, grid of 3": 4.0}  # SPEC §7, seconds per epoch
 
 
-CONFIGS = {  # name: (prototype's layout name, rooms, grid, the CPU split, members vmapped together)
-    "3 rooms, one run": ("one run", 3, 1, "auto", None),
-    "2 rooms, grid of 3": ("the CLI's (CPU split)", 2, 3, "auto", None),
-    "2 rooms, grid of 3, one device": ("one device, vmapped", 2, 3, 1, 3),
+class Setup(NamedTuple):
+    """One timed configuration: the prototype's figure it is compared with, and how we run it."""
+
+    figure: str  # SPEC §7's configuration
+    prototype_s: float  # SPEC §7's seconds per epoch for it
+    layout: str
+    rooms: int
+    grid: int
+    split: CpuDevices  # the CPU split (`split_host_cpu`)
+    members_at_once: int | None
+
+
+CONFIGS = {
+    "3 rooms, one run": Setup("3 rooms, one run", 2.5, "one run", 3, 1, "auto", None),
+    "2 rooms, grid of 3": Setup("2 rooms, grid of 3", 4.0, "the CLI's (CPU split)", 2, 3, "auto", None),
+    "2 rooms, grid of 3, one device": Setup("2 rooms, grid of 3", 4.0, "one device, vmapped", 2, 3, 1, 3),
 }
 
 
@@ -75,10 +88,11 @@ def report(rows: list[dict]) -> str:
              "| prototype | ours / prototype | ours at SPEC §0's roof (148) | ours / prototype there |",
              "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        layout, proto = CONFIGS[r["name"]][0], PROTOTYPE_S[r["name"].removesuffix(", one device")]
+        setup = CONFIGS[r["name"]]
+        proto = setup.prototype_s
         median, roof = statistics.median(r["epochs"]), statistics.median(r["roofs"])
         at_spec = scaled(median, roof)
-        lines.append(f"| {r['name'].removesuffix(', one device')} | {layout} | {r['devices']} | {median:.2f} "
+        lines.append(f"| {setup.figure} | {setup.layout} | {r['devices']} | {median:.2f} "
                      f"({min(r['epochs']):.2f}–{max(r['epochs']):.2f}) | {roof:.0f} | {proto:.1f} | "
                      f"{median / proto:.2f} | {at_spec:.2f} | {at_spec / proto:.2f} |")
     return "\n".join(lines)
@@ -87,18 +101,16 @@ def report(rows: list[dict]) -> str:
 def worker(args: Args) -> None:
     from timed import emitters_on_everywhere
 
-    _, rooms, grid, split, at_once = CONFIGS[args.worker]
+    setup = CONFIGS[args.worker]
     emitters_on_everywhere()  # before JAX starts: the roof compiled as the maze epoch is
-    from ccp_jax.devices import split_host_cpu
-
-    split_host_cpu(split, grid)
+    split_host_cpu(setup.split, setup.grid)
     from timed import TimedGrid
     from update_speed import matmul_roof
 
     shape = EpochShape(steps_per_epoch=args.steps_per_epoch, loops=args.loops, eval_episodes=args.eval_episodes,
                        episode_length=args.episode_length, buffer=200_000)
     roofs = [matmul_roof(256, 256, reps=5) / 1e9]
-    run = TimedGrid(config_for(shape, rooms, grid), members_at_once=at_once)
+    run = TimedGrid(config_for(shape, setup.rooms, setup.grid), members_at_once=setup.members_at_once)
     for _ in range(args.reps):
         run.epoch()
     roofs.append(matmul_roof(256, 256, reps=5) / 1e9)
