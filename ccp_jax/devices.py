@@ -44,8 +44,8 @@ def split_host_cpu(devices: CpuDevices = "auto", grid_size: int | None = None) -
     available cores (`cpu_devices_for`), so that no device sits idle: an exposed device the grid leaves
     unused slowed the others (2-core CPU, SPEC §7's epoch: one 3-room run 2.65–3.0 s per epoch on the
     unsplit CPU, 3.4–4.1 s with 4 devices exposed; a 2-room grid of 3 on 3 devices 3.9–4.0 s with 3
-    exposed, 4.4–4.7 s with 4). "auto" without a grid size (a process that trains several grids): twice the
-    available cores. Returns False, changing nothing, once JAX's backends are running (the flag is read
+    exposed, 4.4–4.7 s with 4). "auto" without a grid size (a process that cannot say which grids it will
+    train): twice the available cores. Returns False, changing nothing, once JAX's backends are running (the flag is read
     when they start). A count the user set in $XLA_FLAGS wins. Accelerators are unaffected: only the CPU
     platform splits, and the grid goes to the default backend's devices.
     """

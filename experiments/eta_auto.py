@@ -142,6 +142,19 @@ def domain_rows(out: Path, domain: str) -> list[str]:
             for name, values, f in rows]
 
 
+def largest_grid(args: Args) -> Optional[int]:
+    """The largest grid this call may train (`common.cli` splits the CPU for it); None when it trains nothing."""
+    if args.table_only:
+        return None
+    scale = SCALES[args.scale]
+    sizes = [scale.seeds]  # auto per normaliser, the raw sum
+    if args.sweep:
+        sizes.append(len(scale.etas) * scale.seeds)
+    if args.fresh_seeds:
+        sizes.append(2 * args.fresh_seeds)  # the best swept ratio and auto
+    return max(sizes)
+
+
 def main(args: Args) -> str:
     out = results_folder(args.out, "table1", args.scale, args.domains)
     if args.fresh_seeds < 0:
@@ -173,4 +186,4 @@ def main(args: Args) -> str:
 
 
 if __name__ == "__main__":
-    cli(main, Args)
+    cli(main, Args, largest_grid=largest_grid)

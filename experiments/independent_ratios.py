@@ -103,6 +103,11 @@ def report(cells: dict[Pair, list[float]], shared: Optional[dict], scale_name: s
     return text
 
 
+def largest_grid(args: Args) -> Optional[int]:
+    """The grid this call trains (`common.cli` splits the CPU for it); None when it trains nothing."""
+    return None if args.table_only else pairs_config(args.scale, parse_pairs(args.pairs)).grid_size
+
+
 def main(args: Args) -> str:
     out = results_folder(args.out, "independent_ratios", args.scale)
     table1_out = results_folder(args.table1_out, "table1", args.scale)
@@ -126,4 +131,4 @@ def main(args: Args) -> str:
 
 
 if __name__ == "__main__":
-    cli(main, Args)
+    cli(main, Args, largest_grid=largest_grid)

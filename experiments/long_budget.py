@@ -199,6 +199,15 @@ def figure(found: dict[str, dict], rooms: int, path: Path) -> None:
     ax.figure.savefig(path)
 
 
+def largest_grid(args: Args) -> Optional[int]:
+    """The largest grid this call may train (`common.cli` splits the CPU for it); None when it trains nothing."""
+    if args.plot_only:
+        return None
+    seeds = args.plan.seeds if args.seeds is None else args.seeds
+    return max((len(etas) * seeds for folder, (etas, _) in args.plan.runs.items()
+                if not args.runs or folder in args.runs), default=None)
+
+
 def main(args: Args) -> str:
     scale, plan, out = SCALES[args.scale], args.plan, args.folder
     if args.runs and (unknown := set(args.runs) - set(plan.runs)):
@@ -231,4 +240,4 @@ def main(args: Args) -> str:
 
 
 if __name__ == "__main__":
-    cli(main, Args)
+    cli(main, Args, largest_grid=largest_grid)

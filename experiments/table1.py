@@ -205,6 +205,16 @@ def write_table(out: Path, domains: tuple[str, ...], algos: tuple[str, ...], sca
     return text
 
 
+def largest_grid(args: Args) -> Optional[int]:
+    """The largest grid this call may train (`common.cli` splits the CPU for it): the CSAC sweep, else a baseline's
+    seeds; None when it trains nothing."""
+    if args.table_only:
+        return None
+    scale = SCALES[args.scale]
+    ratios = len(args.etas or scale.etas) if "csac" in args.algos else 1
+    return ratios * scale.seeds
+
+
 def main(args: Args) -> str:
     out = results_folder(args.out, "table1", args.scale, args.domains)
     every = tuple(DOMAINS)  # the table covers every domain trained in `out`, not only this call's
@@ -218,4 +228,4 @@ def main(args: Args) -> str:
 
 
 if __name__ == "__main__":
-    cli(main, Args)
+    cli(main, Args, largest_grid=largest_grid)

@@ -480,6 +480,47 @@ def test_scripts_end_bad_input_in_one_line_naming_the_field(tmp_path, monkeypatc
     assert done.stderr.startswith("error: ") and "differ in normaliser" in done.stderr
 
 
+def test_scripts_split_the_cpu_for_the_largest_grid_they_train(monkeypatch):
+    """Each training script names its largest grid (ratios x seeds, by hand from its scale or plan), and
+    common.cli splits the CPU for it before main runs; a call that trains nothing names none."""
+    import eta_auto
+
+    def parse(script: str, *argv: str):
+        monkeypatch.setattr(sys, "argv", [script, *argv])
+        return common.tyro.cli(sys.modules[script.removesuffix(".py")].Args)
+
+    # table1 at the cpu scale: 6 ratios (5 numbers and auto) x 3 seeds; a subset; baselines only: the seeds.
+    assert table1.largest_grid(parse("table1.py")) == 18
+    assert table1.largest_grid(parse("table1.py", "--etas", "0.9", "auto")) == 6
+    assert table1.largest_grid(parse("table1.py", "--algos", "sac", "naive")) == 3
+    assert table1.largest_grid(parse("table1.py", "--table-only")) is None
+    # eta_auto: the sweep, or the best ratio and auto on the fresh seeds, or one ratio on the scale's seeds.
+    assert eta_auto.largest_grid(parse("eta_auto.py")) == 18
+    assert eta_auto.largest_grid(parse("eta_auto.py", "--no-sweep", "--fresh-seeds", "12")) == 24
+    assert eta_auto.largest_grid(parse("eta_auto.py", "--no-sweep")) == 3
+    # long_budget: 3 rooms' csac_batch grid is 3 ratios x 3 seeds; 2 rooms' 2 x 6; a chosen run; more seeds.
+    assert long_budget.largest_grid(parse("long_budget.py", "--rooms", "3")) == 9
+    assert long_budget.largest_grid(parse("long_budget.py")) == 12
+    assert long_budget.largest_grid(parse("long_budget.py", "--runs", "csac_eta_0.5")) == 6
+    assert long_budget.largest_grid(parse("long_budget.py", "--rooms", "3", "--seeds", "2")) == 6
+    assert long_budget.largest_grid(parse("long_budget.py", "--plot-only")) is None
+    # independent_ratios: 3 x 3 pairs x 3 seeds, or the pairs asked for.
+    assert independent_ratios.largest_grid(parse("independent_ratios.py")) == 27
+    assert independent_ratios.largest_grid(parse("independent_ratios.py", "--pairs", "0.1,1.0", "1.0,0.1")) == 6
+    # cli splits before main, with the script's count.
+    calls = []
+    monkeypatch.setattr(common, "split_host_cpu", lambda devices, grid=None: calls.append((devices, grid)))
+    monkeypatch.setattr(sys, "argv", ["table1.py", "--etas", "0.9", "auto"])
+    common.cli(lambda args: calls.append("main"), table1.Args, largest_grid=table1.largest_grid)
+    common.cli(lambda args: calls.append("main"), table1.Args)
+    assert calls == [("auto", 6), "main", ("auto", None), "main"]
+    # Bad pairs end in one line naming the field, before anything is split.
+    monkeypatch.setattr(sys, "argv", ["independent_ratios.py", "--pairs", "0.1"])
+    with pytest.raises(SystemExit, match="^error: pairs: "):
+        common.cli(lambda args: None, independent_ratios.Args, largest_grid=independent_ratios.largest_grid)
+    assert len(calls) == 4
+
+
 def test_vs_prototype_reports_times_against_the_prototype_and_scaled_to_spec_roof():
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments" / "bench"))
     import vs_prototype as vp
