@@ -22,6 +22,11 @@ scale's (<domain>/csac_fresh_seeds/), where neither was picked.
 η* makes the normalised loss a multiple of Q_n + Q_{n+1}, which raw critics
 give at η = 0.5 (`--normaliser none --eta 0.5`, <domain>/csac_raw_sum/, and
 with `--fresh-seeds` also on the fresh seeds, <domain>/csac_raw_sum_fresh_seeds/).
+
+`--ramp LOW HIGH` adds a per-agent rule read off the independent-ratio grids: the
+first agent cooperates most, η rising linearly to HIGH for the last
+cooperative agent, η_n = LOW + (HIGH − LOW) n / (N − 2) (N = 2: LOW), in
+<domain>/csac_ramp/ (and <domain>/csac_ramp_fresh_seeds/).
 """
 from __future__ import annotations
 
@@ -56,6 +61,8 @@ class Args:
     """Also train the best swept ratio and `auto` (and the raw sum) on this many new seeds (see above)."""
     raw_sum: bool = False
     """Also train the raw sum of the two critics, `--normaliser none --eta 0.5` (see above)."""
+    ramp: Optional[tuple[float, float]] = None
+    """LOW HIGH: also train per-agent ratios rising along the chain (see above), with --fresh-seeds also on those."""
     table_only: bool = False
 
 
@@ -79,6 +86,15 @@ def first_text(values: list) -> str:
 FRESH = "csac_fresh_seeds"
 RAW_SUM, RAW_SUM_FRESH = "csac_raw_sum", "csac_raw_sum_fresh_seeds"
 RAW_SUM_CHANGES = dict(etas=[(0.5,)], normaliser="none")
+RAMP, RAMP_FRESH = "csac_ramp", "csac_ramp_fresh_seeds"
+
+
+def ramp_etas(low: float, high: float, domain: str) -> tuple[float, ...]:
+    """Per-agent ratios for the N − 1 cooperative agents of `domain`, rising from `low` to `high`."""
+    cooperative = DOMAINS[domain][1] - 1
+    if not 0.0 <= low <= 1.0 or not 0.0 <= high <= 1.0:
+        raise SystemExit(f"error: ramp: both ratios must lie in [0, 1], got {low} {high}")
+    return tuple(round(low + (high - low) * n / max(cooperative - 1, 1), 6) for n in range(cooperative))
 
 
 def fresh_pick(out: Path, domain: str) -> tuple:
@@ -91,14 +107,19 @@ def fresh_pick(out: Path, domain: str) -> tuple:
     return best
 
 
-def train_fresh(scale: Scale, out: Path, domain: str, seeds: int, raw_sum: bool) -> None:
-    """The best swept ratio and `auto` on `seeds` seeds numbered after the scale's, one grid (the raw sum another)."""
+def train_fresh(scale: Scale, out: Path, domain: str, seeds: int, raw_sum: bool,
+                ramp: Optional[tuple[float, float]]) -> None:
+    """The best swept ratio and `auto` on `seeds` seeds numbered after the scale's, one grid (the raw sum, the
+    ramp: one more each)."""
     run_grid(scale.config(domain, "csac", etas=[fresh_pick(out, domain)[:1], (AUTO,)], seeds=seeds,
                           first_seed=scale.seeds),
              run_dir(out, domain, FRESH))
     if raw_sum:
         run_grid(scale.config(domain, "csac", seeds=seeds, first_seed=scale.seeds, **RAW_SUM_CHANGES),
                  run_dir(out, domain, RAW_SUM_FRESH))
+    if ramp:
+        run_grid(scale.config(domain, "csac", etas=[ramp_etas(*ramp, domain)], seeds=seeds, first_seed=scale.seeds),
+                 run_dir(out, domain, RAMP_FRESH))
 
 
 def seed_span(summary: dict) -> str:
@@ -138,8 +159,53 @@ def domain_rows(out: Path, domain: str) -> list[str]:
         for eta, values in final_success(s).items():
             rows.append((f"{name(eta)}, fresh seeds {seed_span(s)}", values, fresh_first[eta]))
     rows += one_variant_rows(out, domain, RAW_SUM_FRESH, "raw sum, fresh seeds {seeds}")
+    for folder, seeds in ((RAMP, ""), (RAMP_FRESH, ", fresh seeds {seeds}")):
+        if (path := run_dir(out, domain, folder) / "summary.json").exists():
+            eta = read_json(path)["members"][0]["eta"][:-1]
+            rows += one_variant_rows(out, domain, folder, f"ramp η = {', '.join(eta_label(e) for e in eta)}{seeds}")
     return [f"| {domain} | {name} | {mean_std(values)} | {' '.join(f'{v:.2f}' for v in values)} | {first_text(f)} |"
             for name, values, f in rows]
+
+
+def eta_star_drift(folders: list[Path]) -> dict[tuple, list[tuple[float, float]]]:
+    """{trained ratio vector: per cooperative agent, (mean batch η* over the first third of the epochs, over the
+    last third)}, pooled over seeds: the ratio the paper's appendix rule reads off the critics each run trained."""
+    from ccp_jax import outputs
+
+    rows_by_eta: dict[tuple, list[dict]] = {}
+    for folder in folders:
+        for row in outputs.read_rows(folder / "metrics.jsonl"):
+            if "eta_star" in row:  # not in runs older than the diagnostic
+                rows_by_eta.setdefault(tuple(row["eta"]), []).append(row)
+    drift = {}
+    for eta, rows in rows_by_eta.items():
+        last_epoch = max(r["epoch"] for r in rows)
+        third = lambda keep: np.mean([r["eta_star"][:-1] for r in rows if keep(r["epoch"])], axis=0)
+        early, late = third(lambda e: e <= last_epoch / 3), third(lambda e: e > 2 * last_epoch / 3)
+        drift[eta] = list(zip(early.tolist(), late.tolist()))
+    return drift
+
+
+def eta_star_lines(out: Path) -> list[str]:
+    """A markdown table of `eta_star_drift` for every domain trained in `out` (empty if none)."""
+    lines, late = [], []
+    for domain in DOMAINS:
+        drift = eta_star_drift(swept_runs(out, domain))
+        for eta in sorted(drift, key=lambda e: (AUTO in e, e if AUTO not in e else ())):
+            agents = " | ".join(f"{a:.2f} → {b:.2f}" for a, b in drift[eta])
+            lines.append(f"| {domain} | {', '.join(eta_label(e) for e in eta[:-1])} | {agents} |")
+            late += [b for _, b in drift[eta]]
+    if not lines:
+        return []
+    width = max(line.count("|") for line in lines) - 3
+    header = "| domain | trained with η | " + " | ".join(f"agent {n + 1}" for n in range(width)) + " |"
+    return ["", "## The paper's η* in the runs themselves", "",
+            "Per cooperative agent, the batch η* = Ran(Q_n) / (Ran(Q_n) + Ran(Q_n+1)) each swept run logged (`auto` "
+            "computes it from running ranges instead, and clips it), mean over the run's seeds and the first third of "
+            "its epochs → the last third; a blank cell: a domain with fewer agents. Over the last thirds it lies "
+            f"between {min(late):.2f} and {max(late):.2f}.", "",
+            header, "|---|---|" + "---|" * width,
+            *[line + " |" * (width - line.count("|") + 3) for line in lines]]
 
 
 def largest_grid(args: Args) -> Optional[int]:
@@ -160,6 +226,8 @@ def main(args: Args) -> str:
     if args.fresh_seeds < 0:
         raise SystemExit(f"error: fresh_seeds: must be >= 0, got {args.fresh_seeds}")
     scale = SCALES[args.scale]
+    for domain in args.domains if args.ramp else ():
+        ramp_etas(*args.ramp, domain)  # refused before anything trains
     if args.fresh_seeds and not args.sweep and not args.table_only:
         for domain in args.domains:  # before any grid trains: no sweep will run to supply the pick
             fresh_pick(out, domain)
@@ -172,14 +240,16 @@ def main(args: Args) -> str:
                          run_dir(out, domain, f"csac_auto_{normaliser}"))
             if args.raw_sum:
                 run_grid(scale.config(domain, "csac", **RAW_SUM_CHANGES), run_dir(out, domain, RAW_SUM))
+            if args.ramp:
+                run_grid(scale.config(domain, "csac", etas=[ramp_etas(*args.ramp, domain)]), run_dir(out, domain, RAMP))
             if args.fresh_seeds:
-                train_fresh(scale, out, domain, args.fresh_seeds, args.raw_sum)
+                train_fresh(scale, out, domain, args.fresh_seeds, args.raw_sum, args.ramp)
     lines = ["| domain | CSAC variant | final success | per seed | env steps to first success |", "|---|---|---|---|---|"]
     for domain in DOMAINS:  # every domain trained in `out`, not only this call's: earlier rows are kept
         lines += domain_rows(out, domain)
     text = ("\n".join(lines) + f"\n\nScale `{args.scale}` (see experiments/README.md); the same seeds in every row "
             "but the fresh-seed ones. Final success: mean of the last 10 epochs' evaluation; first success: mean over "
-            "the seeds that ever succeeded.\n")
+            "the seeds that ever succeeded.\n" + "".join(line + "\n" for line in eta_star_lines(out)))
     write_text(out / "eta_auto.md", text)
     print(text)
     return text

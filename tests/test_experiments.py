@@ -32,7 +32,8 @@ def _fake_run(folder: Path, config, success_by_member: dict[int, list[float]]) -
                              env_steps=epoch * config.steps_per_epoch, success_rate=s, eval_return=10.0 * s,
                              stage_reached_mean=s * (config.num_stages - 1),  # a success ends in the last stage
                              stage_fraction=[1.0] + [s] * (config.num_stages - 1),
-                             eval_end={"pocket": 1.0 - s}))  # and a failure in the pocket
+                             eval_end={"pocket": 1.0 - s},  # and a failure in the pocket
+                             eta_star=[0.9 - 0.1 * epoch] * (config.num_stages - 1) + [None]))
     outputs.write_rows(folder / "metrics.jsonl", rows)
     outputs.write_json(folder / "summary.json", outputs.summarise(config, rows, wall_s=1.0))
 
@@ -195,6 +196,48 @@ def test_eta_auto_rows_compare_auto_variants_with_the_best_swept_ratio(maze2_run
     # A call for another domain rewrites eta_auto.md with the maze2 rows kept.
     text = eta_auto.main(eta_auto.Args(scale="smoke", domains=("maze3",), out=maze2_runs, table_only=True))
     assert rows[0] in text.splitlines() and (maze2_runs / "eta_auto.md").read_text() == text
+
+
+def test_eta_auto_md_shows_the_eta_star_each_swept_run_logged(maze2_runs):
+    """η* over the first third of the epochs (epoch 1: 0.8) → the last third (epoch 3: 0.6), per ratio trained."""
+    import eta_auto
+
+    text = eta_auto.main(eta_auto.Args(scale="smoke", domains=("maze2",), out=maze2_runs, table_only=True))
+    lines = text.splitlines()
+    assert lines[lines.index("## The paper's η* in the runs themselves") + 4:] == [
+        "| domain | trained with η | agent 1 |", "|---|---|---|",
+        "| maze2 | 0.1 | 0.80 → 0.60 |", "| maze2 | auto | 0.80 → 0.60 |"]
+    assert "Over the last thirds it lies between 0.60 and 0.60." in text
+
+
+def test_ramp_rises_along_the_chain_and_is_trained_on_the_scales_and_the_fresh_seeds(maze2_runs, monkeypatch):
+    import eta_auto
+
+    assert eta_auto.ramp_etas(0.1, 0.5, "maze2") == (0.1,)  # one cooperative agent: LOW
+    assert eta_auto.ramp_etas(0.1, 0.5, "maze3") == (0.1, 0.5)
+    assert eta_auto.ramp_etas(0.1, 0.5, "maze4") == (0.1, 0.3, 0.5)
+    calls = []
+    monkeypatch.setattr(eta_auto, "run_grid", lambda config, out: calls.append((config, out)))
+    eta_auto.main(eta_auto.Args(scale="smoke", domains=("maze3",), normalisers=(), out=maze2_runs, sweep=False,
+                                ramp=(0.1, 0.5)))
+    [(config, out)] = calls
+    assert out == maze2_runs / "maze3" / "csac_ramp" and config.etas == ((0.1, 0.5),) and config.seeds == (0, 1)
+    calls.clear()
+    eta_auto.main(eta_auto.Args(scale="smoke", domains=("maze2",), normalisers=(), out=maze2_runs, sweep=False,
+                                ramp=(0.2, 0.5), fresh_seeds=2))
+    (ramp, ramp_dir), (_, fresh_dir), (ramp_fresh, ramp_fresh_dir) = calls
+    assert [ramp_dir.name, fresh_dir.name, ramp_fresh_dir.name] == ["csac_ramp", "csac_fresh_seeds",
+                                                                     "csac_ramp_fresh_seeds"]
+    assert ramp.etas == ramp_fresh.etas == ((0.2,),) and ramp_fresh.seeds == (2, 3)
+    _fake_run(ramp_dir, ramp, {0: [1, 1], 1: [0, 1]})
+    _fake_run(ramp_fresh_dir, ramp_fresh, {0: [0, 0], 1: [0, 1]})
+    rows = eta_auto.domain_rows(maze2_runs, "maze2")
+    assert rows[-2:] == ["| maze2 | ramp η = 0.2 | 0.75 ± 0.25 | 1.00 0.50 | 300 (2/2 seeds) |",
+                         "| maze2 | ramp η = 0.2, fresh seeds 2–3 | 0.25 ± 0.25 | 0.00 0.50 | 400 (1/2 seeds) |"]
+    calls.clear()
+    with pytest.raises(SystemExit, match="^error: ramp: both ratios must lie in"):
+        eta_auto.main(eta_auto.Args(scale="smoke", domains=("maze2",), out=maze2_runs, ramp=(0.1, 1.5)))
+    assert calls == []  # refused before anything trained
 
 
 @pytest.mark.parametrize("sweep", [True, False])
