@@ -208,6 +208,36 @@ def eta_star_lines(out: Path) -> list[str]:
             *[line + " |" * (width - line.count("|") + 3) for line in lines]]
 
 
+def comparison_groups(out: Path, domain: str) -> dict:
+    """Success-curve groups of one domain: the best swept ratio, `auto` and the ramp, each pooled over the
+    scale's and the fresh seeds (`plot.load_curves`); empty if the domain has no finished sweep."""
+    from ccp_jax import plot
+
+    swept = swept_runs(out, domain)
+    if not swept:
+        return {}
+    best = best_swept_eta(merged_summary(swept))
+    extra = [f for name in (FRESH, RAMP, RAMP_FRESH) if ((f := run_dir(out, domain, name)) / "summary.json").exists()]
+    ramps = {tuple(read_json(f / "summary.json")["members"][0]["eta"]) for f in extra if f.name.startswith(RAMP)}
+    return {g: series for g, series in plot.load_curves(swept + extra).items()
+            if g[2] == best or AUTO in g[2] or g[2] in ramps}
+
+
+def draw_comparison(out: Path) -> Optional[Path]:
+    """eta_auto.png: one panel per domain trained in `out`, success of `comparison_groups` against env steps."""
+    from ccp_jax import plot
+    from curves import TITLES
+
+    drawn = {d: g for d in DOMAINS if (g := comparison_groups(out, d))}
+    if not drawn:
+        return None
+    fig = plot.new_figure(4.2 * len(drawn), 3.4)
+    for i, (domain, groups) in enumerate(drawn.items()):
+        plot.curves(groups, ax=fig.add_subplot(1, len(drawn), i + 1), title=TITLES[domain])
+    fig.savefig(out / "eta_auto.png")
+    return out / "eta_auto.png"
+
+
 def largest_grid(args: Args) -> Optional[int]:
     """The largest grid this call may train (`common.cli` splits the CPU for it); None when it trains nothing."""
     if args.table_only:
@@ -251,6 +281,7 @@ def main(args: Args) -> str:
             "but the fresh-seed ones. Final success: mean of the last 10 epochs' evaluation; first success: mean over "
             "the seeds that ever succeeded.\n" + "".join(line + "\n" for line in eta_star_lines(out)))
     write_text(out / "eta_auto.md", text)
+    draw_comparison(out)
     print(text)
     return text
 

@@ -208,6 +208,7 @@ def test_eta_auto_md_shows_the_eta_star_each_swept_run_logged(maze2_runs):
         "| domain | trained with η | agent 1 |", "|---|---|---|",
         "| maze2 | 0.1 | 0.80 → 0.60 |", "| maze2 | auto | 0.80 → 0.60 |"]
     assert "Over the last thirds it lies between 0.60 and 0.60." in text
+    assert (maze2_runs / "eta_auto.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"  # the curves beside it
 
 
 def test_ramp_rises_along_the_chain_and_is_trained_on_the_scales_and_the_fresh_seeds(maze2_runs, monkeypatch):
@@ -234,6 +235,9 @@ def test_ramp_rises_along_the_chain_and_is_trained_on_the_scales_and_the_fresh_s
     rows = eta_auto.domain_rows(maze2_runs, "maze2")
     assert rows[-2:] == ["| maze2 | ramp η = 0.2 | 0.75 ± 0.25 | 1.00 0.50 | 300 (2/2 seeds) |",
                          "| maze2 | ramp η = 0.2, fresh seeds 2–3 | 0.25 ± 0.25 | 0.00 0.50 | 400 (1/2 seeds) |"]
+    # The curves pool each variant over the scale's and the fresh seeds.
+    groups = eta_auto.comparison_groups(maze2_runs, "maze2")
+    assert {g[2]: len(series) for g, series in groups.items()} == {(0.1, 1.0): 2, ("auto", 1.0): 2, (0.2, 1.0): 4}
     calls.clear()
     with pytest.raises(SystemExit, match="^error: ramp: both ratios must lie in"):
         eta_auto.main(eta_auto.Args(scale="smoke", domains=("maze2",), out=maze2_runs, ramp=(0.1, 1.5)))
