@@ -59,6 +59,15 @@ def domain_groups(out: Path, domain: str, algos: tuple[str, ...], with_auto: boo
     return groups
 
 
+def draw_panels(drawn: dict[str, dict], path: Path) -> Path:
+    """One success panel per domain ({domain: curve groups}, in that order), side by side, saved to `path`."""
+    fig = plot.new_figure(4.2 * len(drawn), 3.4)
+    for i, (domain, groups) in enumerate(drawn.items()):
+        plot.curves(groups, ax=fig.add_subplot(1, len(drawn), i + 1), title=TITLES[domain])
+    fig.savefig(path)
+    return path
+
+
 def main(args: Args) -> list[Path]:
     out = results_folder(args.out, "table1", args.scale, args.domains)
     if not args.plot_only:
@@ -76,11 +85,7 @@ def main(args: Args) -> list[Path]:
         plot.curves(stage2, STAGE2, title=f"{TITLES[domain]}: episodes reaching stage 2").savefig(stage2_path)
         written += [path, stage2_path]
     if drawn:
-        fig = plot.new_figure(4.2 * len(drawn), 3.4)
-        for i, (domain, groups) in enumerate(drawn.items()):
-            plot.curves(groups, ax=fig.add_subplot(1, len(drawn), i + 1), title=TITLES[domain])
-        fig.savefig(out / f"curves{tag}.png")
-        written.append(out / f"curves{tag}.png")
+        written.append(draw_panels(drawn, out / f"curves{tag}.png"))
     for path in written:
         print(f"wrote {path}")
     return written

@@ -128,12 +128,14 @@ def seed_span(summary: dict) -> str:
 
 
 def one_variant_rows(out: Path, domain: str, folder: str, label: str) -> list[tuple]:
-    """The row of the one-ratio run in <domain>/<folder> (`{seeds}` in `label` becomes its seeds); none if unfinished."""
+    """The row of the one-ratio run in <domain>/<folder> (`{seeds}` in `label` becomes its seeds, `{eta}` its
+    cooperative agents' ratios); none if unfinished."""
     path = run_dir(out, domain, folder) / "summary.json"
     if not path.exists():
         return []
     s = read_json(path)
-    return [(label.format(seeds=seed_span(s)), *one_variant(s))]
+    eta = ", ".join(eta_label(e) for e in s["members"][0]["eta"][:-1])
+    return [(label.format(seeds=seed_span(s), eta=eta), *one_variant(s))]
 
 
 def domain_rows(out: Path, domain: str) -> list[str]:
@@ -159,10 +161,8 @@ def domain_rows(out: Path, domain: str) -> list[str]:
         for eta, values in final_success(s).items():
             rows.append((f"{name(eta)}, fresh seeds {seed_span(s)}", values, fresh_first[eta]))
     rows += one_variant_rows(out, domain, RAW_SUM_FRESH, "raw sum, fresh seeds {seeds}")
-    for folder, seeds in ((RAMP, ""), (RAMP_FRESH, ", fresh seeds {seeds}")):
-        if (path := run_dir(out, domain, folder) / "summary.json").exists():
-            eta = read_json(path)["members"][0]["eta"][:-1]
-            rows += one_variant_rows(out, domain, folder, f"ramp η = {', '.join(eta_label(e) for e in eta)}{seeds}")
+    rows += one_variant_rows(out, domain, RAMP, "ramp η = {eta}")
+    rows += one_variant_rows(out, domain, RAMP_FRESH, "ramp η = {eta}, fresh seeds {seeds}")
     return [f"| {domain} | {name} | {mean_std(values)} | {' '.join(f'{v:.2f}' for v in values)} | {first_text(f)} |"
             for name, values, f in rows]
 
@@ -188,10 +188,12 @@ def eta_star_drift(folders: list[Path]) -> dict[tuple, list[tuple[float, float]]
 
 def eta_star_lines(out: Path) -> list[str]:
     """A markdown table of `eta_star_drift` for every domain trained in `out` (empty if none)."""
+    from ccp_jax import plot
+
     lines, late = [], []
     for domain in DOMAINS:
         drift = eta_star_drift(swept_runs(out, domain))
-        for eta in sorted(drift, key=lambda e: (AUTO in e, e if AUTO not in e else ())):
+        for eta in sorted(drift, key=lambda e: plot.group_order((domain, "csac", e))):
             agents = " | ".join(f"{a:.2f} → {b:.2f}" for a, b in drift[eta])
             lines.append(f"| {domain} | {', '.join(eta_label(e) for e in eta[:-1])} | {agents} |")
             late += [b for _, b in drift[eta]]
@@ -225,17 +227,10 @@ def comparison_groups(out: Path, domain: str) -> dict:
 
 def draw_comparison(out: Path) -> Optional[Path]:
     """eta_auto.png: one panel per domain trained in `out`, success of `comparison_groups` against env steps."""
-    from ccp_jax import plot
-    from curves import TITLES
+    from curves import draw_panels
 
     drawn = {d: g for d in DOMAINS if (g := comparison_groups(out, d))}
-    if not drawn:
-        return None
-    fig = plot.new_figure(4.2 * len(drawn), 3.4)
-    for i, (domain, groups) in enumerate(drawn.items()):
-        plot.curves(groups, ax=fig.add_subplot(1, len(drawn), i + 1), title=TITLES[domain])
-    fig.savefig(out / "eta_auto.png")
-    return out / "eta_auto.png"
+    return draw_panels(drawn, out / "eta_auto.png") if drawn else None
 
 
 def largest_grid(args: Args) -> Optional[int]:
