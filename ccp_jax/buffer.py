@@ -58,15 +58,26 @@ def add(buffer: ReplayBuffer, batch: Transition, agent: jax.Array) -> ReplayBuff
                         size=jnp.minimum(buffer.size + count, capacity))
 
 
+def sample_indices(size: jax.Array, key: jax.Array, batch_size: int) -> jax.Array:
+    """int32[N, B]: uniform slots of the filled part of each agent's buffer (`size` int32[N]; slot 0 if empty).
+
+    Drawn apart from `gather` so that a loop over updates can draw all of its indices at once.
+    """
+    keys = jax.random.split(key, size.shape[0])
+    return jax.vmap(lambda k, n: jax.random.randint(k, (batch_size,), 0, jnp.maximum(n, 1)))(keys, size)
+
+
+def gather(buffer: ReplayBuffer, idx: jax.Array) -> Transition:
+    """Agent n's transitions at slots idx[n] (int32[N, B]): leaves [N, B, ...]."""
+    return jax.tree.map(lambda d: jax.vmap(lambda dn, i: dn[i])(d, idx), buffer.data)
+
+
 def sample(buffer: ReplayBuffer, key: jax.Array, batch_size: int) -> Transition:
     """Uniform batches from the filled part of every agent's buffer: leaves [N, B, ...].
 
     An empty buffer yields its (zero) slot 0; callers mask such agents out with `ready`.
     """
-    num_agents = buffer.ptr.shape[0]
-    keys = jax.random.split(key, num_agents)
-    idx = jax.vmap(lambda k, n: jax.random.randint(k, (batch_size,), 0, jnp.maximum(n, 1)))(keys, buffer.size)
-    return jax.tree.map(lambda d: jax.vmap(lambda dn, i: dn[i])(d, idx), buffer.data)
+    return gather(buffer, sample_indices(buffer.size, key, batch_size))
 
 
 def ready(buffer: ReplayBuffer, batch_size: int) -> jax.Array:

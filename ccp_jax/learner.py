@@ -19,9 +19,10 @@ import optax
 from flax import struct
 
 from ccp_jax import losses
-from ccp_jax.buffer import Transition
+from ccp_jax import buffer as replay
+from ccp_jax.buffer import ReplayBuffer, Transition
 from ccp_jax.config import Config
-from ccp_jax.networks import Actor, TwinCritic, sample_action
+from ccp_jax.networks import Actor, TwinCritic, squashed_gaussian
 
 Params = Any
 
@@ -110,8 +111,22 @@ class UpdateMetrics(NamedTuple):
     updated: jax.Array
 
 
+class UpdateNoise(NamedTuple):
+    """The standard-normal draws of one update, [N, B, a] each.
+
+    `next` draws a' ~ π_n(s') for the critic targets and `pi` a ~ π_n(s) for the actor loss;
+    `successor` ([N − 1, B, a], empty unless `next_action="acting"`) a' ~ π_{n+1}(s').
+    """
+
+    next: jax.Array
+    pi: jax.Array
+    successor: jax.Array
+
+
 class Learner(NamedTuple):
     update: Callable  # (agents, batch, eta, ready, key) -> (agents, UpdateMetrics)
+    draw_noise: Callable  # (key, batch_size) -> UpdateNoise: what `update` draws from its key
+    update_with_noise: Callable  # (agents, batch, eta, ready, UpdateNoise) -> (agents, UpdateMetrics)
     action_pulls: Callable  # (agents, batch, eta, key) -> (float32[N], float32[N])
 
 
@@ -120,6 +135,8 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
 
     batch: `Transition` with leaves [N, B, ...] (agent n's batch from B_n);
     eta: float32[N] (NaN: "auto"); ready: bool[N] (agents whose buffer can fill a batch).
+    `update` is `update_with_noise` of `draw_noise(key, B)`: a loop of updates can draw
+    all of its noise at once, outside the loop, and get the same numbers.
     """
     n_agents = config.num_agents
     cooperative = config.algo == "csac" and n_agents > 1
@@ -127,7 +144,7 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
     target_entropy = -float(action_size) if config.target_entropy is None else config.target_entropy
     own_ids = jnp.zeros_like(agent_ids) if n_agents == 1 else agent_ids
     actor_apply = jax.vmap(nets.actor.apply)
-    sample = jax.vmap(functools.partial(sample_action, tanh_log_prob=config.tanh_log_prob))
+    squash = jax.vmap(functools.partial(squashed_gaussian, tanh_log_prob=config.tanh_log_prob))
     critic_min = jax.vmap(lambda p, o, a: _min_q(nets.critic, p, o, a))
     critic_twin = jax.vmap(nets.critic.apply)
     soft_target = jax.vmap(losses.soft_target, in_axes=(0, 0, 0, 0, 0, 0, None, None))
@@ -188,34 +205,43 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
 
     acting_next = cooperative and config.next_action == "acting"
 
-    def successor_takes_over(actor, batch: Transition, next_act, next_logp, next_alpha, alpha, k_next):
+    def normal(keys: jax.Array, batch_size: int) -> jax.Array:
+        """One standard-normal [B, a] per key: keys [K] -> [K, B, a]."""
+        return jax.vmap(lambda k: jax.random.normal(k, (batch_size, action_size)))(keys)
+
+    def draw_noise(key: jax.Array, batch_size: int) -> UpdateNoise:
+        keys = jax.random.split(key, (n_agents, 2))
+        k_next, k_pi = keys[:, 0], keys[:, 1]
+        successor = (normal(jax.vmap(lambda k: jax.random.fold_in(k, 1))(k_next[:-1]), batch_size) if acting_next
+                     else jnp.zeros((0, batch_size, action_size)))
+        return UpdateNoise(next=normal(k_next, batch_size), pi=normal(k_pi, batch_size), successor=successor)
+
+    def successor_takes_over(actor, batch: Transition, next_act, next_logp, next_alpha, alpha, noise):
         """Where agent n's s' already lies in stage n + 1, a' ~ π_{n+1}(s') with α_{n+1}: the policy acting there.
 
         next_act [N, B, a], next_logp and next_alpha [N, B] are π_n's; returns them with those rows replaced.
         """
         successors = jax.tree.map(lambda x: x[1:], actor)
         mean, log_std = actor_apply(successors, batch.next_obs[:-1])
-        keys = jax.vmap(lambda k: jax.random.fold_in(k, 1))(k_next[:-1])
-        act, logp = sample(mean, log_std, keys)  # [N − 1, B, a], [N − 1, B]
+        act, logp = squash(mean, log_std, noise)  # [N − 1, B, a], [N − 1, B]
         crossed = batch.next_stage[:-1] > agent_ids[:-1, None]  # [N − 1, B]
         lead = slice(0, n_agents - 1)
         return (next_act.at[lead].set(jnp.where(crossed[..., None], act, next_act[lead])),
                 next_logp.at[lead].set(jnp.where(crossed, logp, next_logp[lead])),
                 next_alpha.at[lead].set(jnp.where(crossed, alpha[1:, None], next_alpha[lead])))
 
-    def total_loss(trainable, target_critic, norm_state, batch: Transition, eta, ready, keys):
+    def total_loss(trainable, target_critic, norm_state, batch: Transition, eta, ready, noise: UpdateNoise):
         actor, critic, log_alpha = trainable
         alpha = jnp.exp(jax.lax.stop_gradient(log_alpha))  # [N]
-        k_next, k_pi = keys[:, 0], keys[:, 1]
 
         # Critic targets with π_n's next action and α_n, for j = n and j = n + 1.
         frozen_actor = jax.lax.stop_gradient(actor)
         next_mean, next_log_std = actor_apply(frozen_actor, batch.next_obs)
-        next_act, next_logp = sample(next_mean, next_log_std, k_next)
+        next_act, next_logp = squash(next_mean, next_log_std, noise.next)
         next_alpha = jnp.broadcast_to(alpha[:, None], next_logp.shape)  # [N, B]
         if acting_next:
             next_act, next_logp, next_alpha = successor_takes_over(frozen_actor, batch, next_act, next_logp,
-                                                                   next_alpha, alpha, k_next)
+                                                                   next_alpha, alpha, noise.successor)
         q_target = critic_min(slot_params(target_critic), slot_data(batch.next_obs), slot_data(next_act))
         y = soft_target(channel(slot_data(batch.rewards)), q_target, slot_data(next_logp), slot_data(next_alpha),
                         slot_data(batch.terminal), channel(slot_data(batch.completed)), config.gamma,
@@ -226,7 +252,7 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
 
         # Actor: reparameterised a ~ π_n(s), critics held fixed.
         mean, log_std = actor_apply(actor, batch.obs)
-        act, logp = sample(mean, log_std, k_pi)
+        act, logp = squash(mean, log_std, noise.pi)
         frozen = slot_params(jax.lax.stop_gradient(critic))
         q_pi_slots = critic_min(frozen, slot_data(batch.obs), slot_data(act))
         q_pi = q_pi_slots[:n_agents]  # [N, B]
@@ -258,11 +284,11 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
         keep = lambda new, old: jnp.where(mask, new, old)
         return jax.tree.map(keep, new_params, params), jax.tree.map(keep, new_opt, opt_state)
 
-    def update(agents: AgentState, batch: Transition, eta: jax.Array, ready: jax.Array, key: jax.Array):
-        keys = jax.random.split(key, (n_agents, 2))
+    def update_with_noise(agents: AgentState, batch: Transition, eta: jax.Array, ready: jax.Array,
+                          noise: UpdateNoise):
         trainable = (agents.actor, agents.critic, agents.log_alpha)
         grads, (metrics, norm) = jax.grad(total_loss, has_aux=True)(trainable, agents.target_critic, agents.norm,
-                                                                   batch, eta, ready, keys)
+                                                                   batch, eta, ready, noise)
         g_actor, g_critic, g_alpha = grads
         # A critic moves when its own buffer or (CSAC) the previous agent's buffer is ready.
         critic_ready = ready.at[1:].set(ready[1:] | ready[:-1]) if cooperative else ready
@@ -274,6 +300,9 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
         return AgentState(norm=norm, actor=actor, critic=critic, target_critic=target, log_alpha=log_alpha,
                           actor_opt=actor_opt, critic_opt=critic_opt, alpha_opt=alpha_opt), metrics
 
+    def update(agents: AgentState, batch: Transition, eta: jax.Array, ready: jax.Array, key: jax.Array):
+        return update_with_noise(agents, batch, eta, ready, draw_noise(key, batch.obs.shape[1]))
+
     def action_pulls(agents: AgentState, batch: Transition, eta: jax.Array, key: jax.Array):
         """Each critic's pull on agent n's actions: mean ‖∂(η Q̂_n)/∂a‖ and ‖∂((1 − η) Q̂_{n+1})/∂a‖, float32[N] each.
 
@@ -284,7 +313,7 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
             zeros = jnp.zeros((n_agents,))
             return zeros, zeros
         mean, log_std = actor_apply(agents.actor, batch.obs)
-        act, _ = sample(mean, log_std, jax.random.split(key, n_agents))
+        act, _ = squash(mean, log_std, normal(jax.random.split(key, n_agents), batch.obs.shape[1]))
         slots = slot_params(agents.critic)
 
         def weighted(a):
@@ -301,4 +330,24 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
             pulls.append(jnp.linalg.norm(g, axis=-1).mean(-1))
         return pulls[0], pulls[1]
 
-    return Learner(update=update, action_pulls=action_pulls)
+    return Learner(update=update, draw_noise=draw_noise, update_with_noise=update_with_noise,
+                   action_pulls=action_pulls)
+
+
+def train_loops(learner: Learner, agents: AgentState, buffer: ReplayBuffer, eta: jax.Array, ready: jax.Array,
+                key: jax.Array, loops: int, batch_size: int) -> tuple[AgentState, UpdateMetrics]:
+    """`loops` joint updates, each on fresh batches from `buffer`: (agents, UpdateMetrics with leaves [loops, N]).
+
+    Loop i draws from the i-th key of `key`; all loops' batch indices and noise are drawn at once,
+    before the loop (the same draws as inside it). On a CPU that made the epoch's updates ≈ 20 %
+    faster than drawing in the loop, whose small random-number loops run one after another.
+    """
+    loop_keys = jax.vmap(jax.random.split)(jax.random.split(key, loops))
+    idx = jax.vmap(lambda k: replay.sample_indices(buffer.size, k, batch_size))(loop_keys[:, 0])
+    noise = jax.vmap(lambda k: learner.draw_noise(k, batch_size))(loop_keys[:, 1])
+
+    def loop(agents, drawn):
+        idx, noise = drawn
+        return learner.update_with_noise(agents, replay.gather(buffer, idx), eta, ready, noise)
+
+    return jax.lax.scan(loop, agents, (idx, noise))

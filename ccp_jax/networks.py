@@ -5,7 +5,10 @@ by vmapping `init` and `apply`.
 """
 from __future__ import annotations
 
+import functools
+import itertools
 import math
+import operator
 from typing import Callable, Sequence
 
 import flax.linen as nn
@@ -27,9 +30,31 @@ def symmetric_uniform(scale: float) -> Callable:
     return lambda key, shape, dtype=jnp.float32: jax.random.uniform(key, shape, dtype, -scale, scale)
 
 
+class ConcatDense(nn.Module):
+    """`nn.Dense` applied to the concatenation of its inputs, computed part by part.
+
+    inputs [..., d_i] -> [..., features], with one kernel [Σ d_i, features] and a bias,
+    the parameters (and initial values) of `nn.Dense` on the concatenated input. Product by
+    product, XLA can share a part common to two calls (the critic's obs, in its loss and in the
+    actor's) and differentiate only through the parts that need it (the action columns).
+    """
+
+    features: int
+    kernel_init: Callable = nn.linear.default_kernel_init
+
+    @nn.compact
+    def __call__(self, *inputs: jax.Array) -> jax.Array:
+        sizes = [x.shape[-1] for x in inputs]
+        kernel = self.param("kernel", self.kernel_init, (sum(sizes), self.features))
+        bias = self.param("bias", nn.initializers.zeros_init(), (self.features,))
+        rows = [0, *itertools.accumulate(sizes)]
+        return functools.reduce(operator.add, [x @ kernel[a:b] for x, a, b in zip(inputs, rows, rows[1:])]) + bias
+
+
 class MLP(nn.Module):
     """MLP with a linear output layer; ReLU hidden layers unless a subclass sets `activation`.
 
+    inputs [..., d_i] are read as their concatenation [..., Σ d_i] (`ConcatDense`).
     `init_scheme`: "flax" (lecun-normal kernels, zero biases) or "rlkit" (RLkit's: `rlkit_fanin_init`
     hidden kernels, an output kernel U(±`out_init_w`), zero biases), so the initial outputs are
     close to 0 everywhere: Q ≈ 0 and a policy of mean 0 and log-std 0 in every state.
@@ -42,13 +67,16 @@ class MLP(nn.Module):
     out_init_w: float = 3e-3
 
     @nn.compact
-    def __call__(self, x: jax.Array) -> jax.Array:
+    def __call__(self, *inputs: jax.Array) -> jax.Array:
         rlkit = self.init_scheme == "rlkit"
         hidden_init = rlkit_fanin_init if rlkit else nn.linear.default_kernel_init
-        for h in self.hidden:
-            x = self.activation(nn.Dense(h, kernel_init=hidden_init)(x))
         out_init = symmetric_uniform(self.out_init_w) if rlkit else nn.linear.default_kernel_init
-        return nn.Dense(self.out, kernel_init=out_init)(x)
+        widths, inits = [*self.hidden, self.out], [hidden_init] * len(self.hidden) + [out_init]
+        # Named as nn.Dense's auto-names, so parameter trees (and checkpoints) are those of plain Dense layers.
+        x = ConcatDense(widths[0], inits[0], name="Dense_0")(*inputs)
+        for i, (width, init) in enumerate(zip(widths[1:], inits[1:]), start=1):
+            x = nn.Dense(width, kernel_init=init, name=f"Dense_{i}")(self.activation(x))
+        return x
 
 
 class Actor(nn.Module):
@@ -76,20 +104,26 @@ class TwinCritic(nn.Module):
     def __call__(self, obs: jax.Array, act: jax.Array) -> jax.Array:
         twin = nn.vmap(MLP, variable_axes={"params": 0}, split_rngs={"params": True},
                        in_axes=None, out_axes=0, axis_size=2)
-        return twin(self.hidden, 1, init_scheme=self.init_scheme)(jnp.concatenate([obs, act], -1))[..., 0]
+        return twin(self.hidden, 1, init_scheme=self.init_scheme)(obs, act)[..., 0]
 
 
 def sample_action(mean: jax.Array, log_std: jax.Array, key: jax.Array,
                   tanh_log_prob: str) -> tuple[jax.Array, jax.Array]:
-    """Reparameterised tanh-Gaussian sample and its log-probability.
+    """Reparameterised tanh-Gaussian sample and its log-probability, `squashed_gaussian` of fresh noise."""
+    return squashed_gaussian(mean, log_std, jax.random.normal(key, mean.shape, mean.dtype), tanh_log_prob)
 
-    mean, log_std: [..., a]. Returns action [..., a] in (-1, 1) and log_prob [...].
+
+def squashed_gaussian(mean: jax.Array, log_std: jax.Array, noise: jax.Array,
+                      tanh_log_prob: str) -> tuple[jax.Array, jax.Array]:
+    """The tanh-Gaussian action for standard-normal `noise` and its log-probability.
+
+    mean, log_std, noise: [..., a]. Returns action [..., a] in (-1, 1) and log_prob [...].
     `tanh_log_prob` picks the change-of-variables term log(1 − tanh(u)²):
     "rlkit" is RLkit's TanhNormal, log(1 − tanh(u)² + 1e-6), whose ε caps the
     term (and zeroes its gradient) once an action saturates (|u| ≳ 7); "exact"
     is the closed form, which keeps growing, 2|u| per saturated dimension.
     """
-    u = mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape, mean.dtype)
+    u = mean + jnp.exp(log_std) * noise
     gauss = -0.5 * (((u - mean) / jnp.exp(log_std)) ** 2 + 2 * log_std + jnp.log(2 * jnp.pi))
     action = jnp.tanh(u)
     if tanh_log_prob == "rlkit":

@@ -22,7 +22,8 @@ from ccp_jax.buffer import ReplayBuffer, Transition
 from ccp_jax.collect import EvalMetrics, make_collect, make_evaluate, per_episode
 from ccp_jax.config import Config, ConfigError
 from ccp_jax.devices import grid_devices, pad_grid
-from ccp_jax.learner import AgentState, Networks, UpdateMetrics, init_agents, make_learner, make_networks
+from ccp_jax.learner import (AgentState, Networks, UpdateMetrics, init_agents, make_learner, make_networks,
+                             train_loops)
 from envs_mjx import cpu_compiler_options
 
 
@@ -96,13 +97,8 @@ def make_train(config: Config, env: Env) -> Trainer:
             env_state, buffer, stats = collect(agents.actor, env_state, buffer, k_collect, env_steps)
             ready = replay.ready(buffer, config.batch_size)
 
-            def loop(agents, k):
-                k_sample, k_update = jax.random.split(k)
-                batch = replay.sample(buffer, k_sample, config.batch_size)
-                return learner.update(agents, batch, eta, ready, k_update)
-
-            agents, train_metrics = jax.lax.scan(
-                loop, agents, jax.random.split(k_train, config.train_loops_per_epoch // cycles))
+            agents, train_metrics = train_loops(learner, agents, buffer, eta, ready, k_train,
+                                                config.train_loops_per_epoch // cycles, config.batch_size)
             env_steps = env_steps + config.steps_per_epoch // cycles
             return (agents, env_state, buffer, env_steps), (stats, train_metrics)
 

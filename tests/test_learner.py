@@ -1,10 +1,12 @@
 """The joint update's wiring: cross-buffer critic terms, per-agent α and π, masking."""
+import chex
 import jax
 import jax.numpy as jnp
 import optax
 import numpy as np
 import pytest
 
+from ccp_jax import buffer as replay
 from ccp_jax import losses
 from ccp_jax.buffer import Transition
 from ccp_jax.config import make_config
@@ -275,3 +277,57 @@ def test_initial_alpha_sets_every_temperature_before_training():
     for alpha in (1.0, 0.05):
         agents = init_agents(nets, jax.random.PRNGKey(0), 2, OBS, ACT, initial_alpha=alpha)
         np.testing.assert_allclose(np.exp(np.asarray(agents.log_alpha)), [alpha, alpha], rtol=1e-6)
+
+
+@pytest.mark.parametrize("next_action", ["own", "acting"])
+def test_draws_hoisted_out_of_a_loop_are_the_draws_inside_it(csac, next_action):
+    """The trainer draws every loop's batch indices and noise at once (vmapped over the loop's keys):
+    they must be, bit for bit, what each loop would draw from its own key."""
+    config, nets, agents, batch, _ = csac
+    learner = make_learner(config.replace(next_action=next_action), nets, ACT)
+    keys = jax.random.split(jax.random.PRNGKey(5), 7)
+    at_once = jax.jit(jax.vmap(lambda k: learner.draw_noise(k, B)))(keys)
+    chex.assert_shape([at_once.next, at_once.pi], (7, 2, B, ACT))
+    chex.assert_shape(at_once.successor, (7, 1 if next_action == "acting" else 0, B, ACT))
+    sizes = jnp.array([40, 3], jnp.int32)
+    idx = jax.jit(jax.vmap(lambda k: replay.sample_indices(sizes, k, B)))(keys)
+    for i, k in enumerate(keys):
+        one = learner.draw_noise(k, B)
+        for a, b in zip(at_once, one):
+            np.testing.assert_array_equal(a[i], b)
+        np.testing.assert_array_equal(idx[i], replay.sample_indices(sizes, k, B))
+    assert int(idx[:, 1].max()) == 2 and int(idx[:, 0].max()) > 2  # agent 1 holds 3 transitions
+    # The first agent's own and successor draws differ (fold_in), and `update` is `update_with_noise` of its key's draws.
+    if next_action == "acting":
+        assert not np.array_equal(at_once.next[:, 0], at_once.successor[:, 0])
+    eta, ready = jnp.array([0.3, 1.0]), jnp.array([True, True])
+    by_key = jax.jit(learner.update)(agents, batch, eta, ready, keys[0])
+    by_noise = jax.jit(learner.update_with_noise)(agents, batch, eta, ready, learner.draw_noise(keys[0], B))
+    for a, b in zip(jax.tree.leaves(by_key), jax.tree.leaves(by_noise)):
+        np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-7)
+
+
+def test_critic_first_layer_is_a_dense_layer_on_obs_and_action_together():
+    """`ConcatDense` keeps nn.Dense's parameters of the concatenated input (checkpoints are unchanged) and
+    computes that layer product by product: same values, and ∂Q/∂a the action rows of ∂Q/∂[s, a]."""
+    nets = make_networks(make_config("small"), action_size=2)
+    obs = jax.random.normal(jax.random.PRNGKey(1), (9, 24))
+    act = jax.random.uniform(jax.random.PRNGKey(2), (9, 2), minval=-1, maxval=1)
+    params = nets.critic.init(jax.random.PRNGKey(0), obs, act)
+    layers = params["params"]["VmapMLP_0"]
+    assert sorted(layers) == ["Dense_0", "Dense_1", "Dense_2"]
+    chex.assert_shape([layers["Dense_0"]["kernel"], layers["Dense_0"]["bias"]], [(2, 26, 64), (2, 64)])
+
+    def by_hand(x):  # [9, 26] -> [2, 9]
+        h = x
+        for i in range(3):
+            w, b = layers[f"Dense_{i}"]["kernel"], layers[f"Dense_{i}"]["bias"]
+            h = jnp.einsum("bi,tio->tbo" if i == 0 else "tbi,tio->tbo", h, w) + b[:, None]
+            h = jax.nn.relu(h) if i < 2 else h[..., 0]
+        return h
+
+    x = jnp.concatenate([obs, act], -1)
+    np.testing.assert_allclose(nets.critic.apply(params, obs, act), by_hand(x), rtol=1e-5, atol=1e-6)
+    d_act = jax.grad(lambda a: nets.critic.apply(params, obs, a).sum())(act)
+    d_x = jax.grad(lambda x: by_hand(x).sum())(x)
+    np.testing.assert_allclose(d_act, d_x[:, 24:], rtol=1e-5, atol=1e-6)

@@ -24,10 +24,19 @@ import reference_csac as reference  # noqa: E402
 OBS, ACT, B, HIDDEN, STEPS = 6, 2, 32, (16, 16), 4
 
 
+NOISE_KEY = jax.random.PRNGKey(7)
+
+
 def fixed_noise_sample(mean, log_std, key, tanh_log_prob="rlkit"):
-    """Both implementations draw this same ε whatever their keys (RLkit's log π form)."""
+    """The reference draws this same ε whatever its keys (RLkit's log π form); ours gets it as `fixed_noise`."""
     del key, tanh_log_prob
-    return reference.gaussian_sample(mean, log_std, jax.random.PRNGKey(7), "rlkit")
+    return reference.gaussian_sample(mean, log_std, NOISE_KEY, "rlkit")
+
+
+def fixed_noise(n_agents: int) -> "learner_module.UpdateNoise":
+    """`fixed_noise_sample`'s ε for every agent and draw of our update."""
+    eps = jnp.broadcast_to(jax.random.normal(NOISE_KEY, (B, ACT)), (n_agents, B, ACT))
+    return learner_module.UpdateNoise(next=eps, pi=eps, successor=eps[:0])
 
 
 def _batch(n_agents: int, config: Config, seed: int = 0) -> Transition:
@@ -59,11 +68,10 @@ def _to_reference(agents, ref: "reference.Reference") -> list[dict]:
     ((0.1, 1.0), False, (True, True)),
     ((0.3, 0.7, 1.0), True, (True, False, True)),  # a middle agent not ready yet: its critic still moves
 ])
-def test_joint_update_equals_reference(monkeypatch, etas, absorbing_stages, ready):
+def test_joint_update_equals_reference(etas, absorbing_stages, ready):
     n_agents = len(etas)
     config = Config(rooms=n_agents, hidden=HIDDEN, etas=(etas[:-1],), absorbing_stages=absorbing_stages,
-                    batch_size=B, buffer_size=4 * B)
-    monkeypatch.setattr(learner_module, "sample_action", fixed_noise_sample)
+                    batch_size=B, buffer_size=4 * B, tanh_log_prob="rlkit")
     nets = learner_module.make_networks(config, ACT)
     learner = learner_module.make_learner(config, nets, ACT)
     ours = learner_module.init_agents(nets, jax.random.PRNGKey(1), n_agents, OBS, ACT, value_range=20.0)
@@ -75,9 +83,9 @@ def test_joint_update_equals_reference(monkeypatch, etas, absorbing_stages, read
     per_agent = [{"obs": batch.obs[n], "action": batch.action[n], "rewards": batch.rewards[n],
                   "next_obs": batch.next_obs[n], "terminal": batch.terminal[n], "success": batch.terminal[n],
                   "next_stage": batch.next_stage[n]} for n in range(n_agents)]
-    our_update, their_update = jax.jit(learner.update), jax.jit(ref.update)
+    our_update, their_update = jax.jit(learner.update_with_noise), jax.jit(ref.update)
     for i in range(STEPS):
-        ours, _ = our_update(ours, batch, jnp.asarray(etas, jnp.float32), ready, jax.random.PRNGKey(i))
+        ours, _ = our_update(ours, batch, jnp.asarray(etas, jnp.float32), ready, fixed_noise(n_agents))
         theirs = their_update(theirs, per_agent, ready, jax.random.PRNGKey(i))
 
     for n, (mine, other, before) in enumerate(zip(_to_reference(ours, ref), theirs, start)):

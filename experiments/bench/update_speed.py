@@ -12,6 +12,7 @@ chain's roof, the yardstick SPEC §7 states the prototype's speed in (76 % at
 from __future__ import annotations
 
 import dataclasses
+import functools
 import statistics
 import time
 
@@ -19,9 +20,10 @@ import jax
 import jax.numpy as jnp
 import tyro
 
-from ccp_jax.buffer import Transition
+from ccp_jax import buffer as replay
+from ccp_jax.buffer import ReplayBuffer, Transition
 from ccp_jax.config import make_config
-from ccp_jax.learner import init_agents, make_learner, make_networks
+from ccp_jax.learner import init_agents, make_learner, make_networks, train_loops
 from timed import emitters_on_everywhere  # this folder: the script's own
 
 
@@ -33,6 +35,8 @@ class Args:
     grid: int = 1
     batch: int = 256
     loops: int = 50
+    buffer: int = 10_000
+    """Transitions per agent, all filled."""
     reps: int = 3
     obs: int = 24
     act: int = 2
@@ -61,31 +65,39 @@ def matmul_roof(batch: int, width: int, reps: int) -> float:
     return 2 * batch * width * width * chain / timed(f, x, w, reps=reps)
 
 
+def full_of_noise(buffer: ReplayBuffer, key: jax.Array) -> ReplayBuffer:
+    """`buffer` (any leading axes) with every slot filled with uniform [0, 1) values, cast to each leaf's dtype."""
+    leaves, treedef = jax.tree.flatten(buffer.data)
+    full = [jax.random.uniform(k, x.shape).astype(x.dtype) for k, x in zip(jax.random.split(key, len(leaves)), leaves)]
+    capacity = buffer.data.obs.shape[-2]  # obs leaves are [..., capacity, obs]
+    return buffer.replace(data=jax.tree.unflatten(treedef, full), size=jnp.full_like(buffer.size, capacity))
+
+
 def main(args: Args) -> dict:
     config = make_config("paper", rooms=args.rooms, algo=args.algo, hidden=args.hidden, batch_size=args.batch)
     n = config.num_agents
     nets = make_networks(config, args.act)
-    update = make_learner(config, nets, args.act).update
+    learner = make_learner(config, nets, args.act)
     keys = jax.random.split(jax.random.PRNGKey(0), args.grid)
     agents = jax.vmap(lambda k: init_agents(nets, k, n, args.obs, args.act))(keys)
     r = config.num_agents if args.algo != "sac" else 1
-    batch = Transition(obs=jnp.ones((args.grid, n, args.batch, args.obs)), action=jnp.zeros((args.grid, n, args.batch, args.act)),
-                       rewards=jnp.ones((args.grid, n, args.batch, r)), next_obs=jnp.ones((args.grid, n, args.batch, args.obs)),
-                       terminal=jnp.zeros((args.grid, n, args.batch)), completed=jnp.zeros((args.grid, n, args.batch, r)),
-                       next_stage=jnp.zeros((args.grid, n, args.batch), jnp.int32))
+    # Full buffers of random transitions: the trainer's loops then draw batches as late in training.
+    example = Transition(obs=jnp.zeros((args.obs,)), action=jnp.zeros((args.act,)), rewards=jnp.zeros((r,)),
+                         next_obs=jnp.zeros((args.obs,)), terminal=jnp.zeros(()), completed=jnp.zeros((r,)),
+                         next_stage=jnp.zeros((), jnp.int32))
+    empty = jax.vmap(lambda _: replay.init_buffer(example, n, args.buffer))(keys)
+    buffer = full_of_noise(empty, keys[0])
     eta, ready = jnp.full((args.grid, n), 0.5), jnp.ones((args.grid, n), bool)
-    step = jax.vmap(update, in_axes=(0, 0, 0, 0, None))
 
-    flops = jax.jit(step).lower(agents, batch, eta, ready, keys[0]).compile().cost_analysis()
+    @functools.partial(jax.jit, static_argnums=1)
+    def many(agents, loops):  # the trainer's loops, every run of the grid
+        run = lambda a, b, e, r, k: train_loops(learner, a, b, e, r, k, loops, args.batch)[0]
+        return jax.vmap(run)(agents, buffer, eta, ready, jax.random.split(keys[0], args.grid))
+
+    flops = many.lower(agents, 1).compile().cost_analysis()
     flops = (flops[0] if isinstance(flops, list) else flops)["flops"]
 
-    @jax.jit
-    def many(agents):
-        def body(a, k):
-            return step(a, batch, eta, ready, k)[0], None
-        return jax.lax.scan(body, agents, jax.random.split(keys[0], args.loops))[0]
-
-    per_update = timed(many, agents, reps=args.reps) / args.loops
+    per_update = timed(many, agents, args.loops, reps=args.reps) / args.loops
     roof = matmul_roof(args.batch, max(args.hidden), args.reps)
     roof_256 = roof if max(args.hidden) == 256 else matmul_roof(args.batch, 256, args.reps)
     result = {"hidden": args.hidden, "agents": n, "grid": args.grid, "gflop_per_joint_update": flops / 1e9,

@@ -14,8 +14,8 @@ What is timed (compile excluded):
   filled with `fill` random maze transitions: replay sampling, critic, actor and
   temperature steps, target update.
 * ours updates: a jitted `lax.scan` of K loops of exactly the trainer's loop
-  body (`buffer.sample` from the agents' full ring buffers, then the learner's
-  joint `update` of all agents), for 1 agent (algo="sac") and for N agents
+  body (`learner.train_loops`: batches from the agents' full ring buffers, the
+  learner's joint update of all agents), for 1 agent (algo="sac") and for N agents
   (algo="csac", N rooms: each agent's update then also carries the
   cooperative cross-critic terms, i.e. more work than a SAC update), over a
   grid of `grid` runs. Per agent-update = time / (K · N · grid).
@@ -29,6 +29,7 @@ on a shared machine hits both sides of a pair alike.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import statistics
 import sys
 import time
@@ -42,22 +43,14 @@ import tyro
 import ccp_jax.trainer as trainer_module
 from ccp_jax import buffer as replay
 from ccp_jax.config import make_config
-from ccp_jax.learner import make_networks
+from ccp_jax.learner import make_learner, make_networks, train_loops
 from ccp_jax.trainer import make_grid_train, make_train
 from envs_mjx.maze import Maze
 
-try:
-    from ccp_jax.learner import make_learner
-
-    def make_update(config, nets, action_size):
-        return make_learner(config, nets, action_size).update
-except ImportError:  # the learner's older entry point
-    from ccp_jax.learner import make_update
-
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from gym_maze import GymMaze  # noqa: E402
-from update_speed import matmul_roof  # noqa: E402
-from vs_brax import _no_eval  # noqa: E402
+from update_speed import full_of_noise, matmul_roof  # noqa: E402
+from timed import no_eval  # noqa: E402
 
 
 @dataclasses.dataclass
@@ -143,37 +136,21 @@ def our_updates(args: Args, width: int, n_agents: int):
     env = Maze(rooms=config.rooms)
     trainer = make_train(config, env)
     nets = make_networks(config, env.action_size)
-    update = make_update(config, nets, env.action_size)
+    learner = make_learner(config, nets, env.action_size)
     n = config.num_agents
 
     state = jax.jit(jax.vmap(trainer.init))(jnp.arange(args.grid))
     key = jax.random.PRNGKey(1)
-    leaves, treedef = jax.tree.flatten(state.buffer.data)
-    full = [jax.random.uniform(k, x.shape, x.dtype) for k, x in zip(jax.random.split(key, len(leaves)), leaves)]
-    buffer = state.buffer.replace(data=jax.tree.unflatten(treedef, full),
-                                  size=jnp.full_like(state.buffer.size, config.buffer_size))
+    buffer = full_of_noise(state.buffer, key)
     eta = jnp.full((args.grid, n), 0.5)
     ready = replay.ready(buffer, config.batch_size)
 
-    def loop(buffer, eta, ready):  # the trainer's loop body, one run
-        def body(agents, k):
-            k_sample, k_update = jax.random.split(k)
-            batch = replay.sample(buffer, k_sample, config.batch_size)
-            return update(agents, batch, eta, ready, k_update)
-        return body
-
-    @jax.jit
-    def many(agents, buffer, eta, ready, key):
-        def run(a, b, e, r, k):
-            return jax.lax.scan(loop(b, e, r), a, jax.random.split(k, args.loops))[0]
+    @functools.partial(jax.jit, static_argnums=5)
+    def many(agents, buffer, eta, ready, key, loops=args.loops):  # the trainer's loops, every run of the grid
+        run = lambda a, b, e, r, k: train_loops(learner, a, b, e, r, k, loops, config.batch_size)[0]
         return jax.vmap(run)(agents, buffer, eta, ready, jax.random.split(key, args.grid))
 
-    @jax.jit
-    def one(agents, buffer, eta, ready, key):
-        return jax.vmap(lambda a, b, e, r, k: loop(b, e, r)(a, k)[0])(agents, buffer, eta, ready,
-                                                                      jax.random.split(key, args.grid))
-
-    cost = one.lower(state.agents, buffer, eta, ready, key).compile().cost_analysis()
+    cost = many.lower(state.agents, buffer, eta, ready, key, 1).compile().cost_analysis()
     flops = (cost[0] if isinstance(cost, list) else cost)["flops"]
     jax.block_until_ready(many(state.agents, buffer, eta, ready, key))  # compile
 
@@ -188,7 +165,7 @@ def our_e2e(args: Args, width: int):
     """A callable that runs one epoch of e2e_steps env steps (1 env, 1 update / 5 steps, no eval); env steps/s."""
     config = our_config(args, width, 1, num_envs=1, steps_per_epoch=args.e2e_steps,
                         train_loops_per_epoch=args.e2e_steps // 5, total_steps=1000 * args.e2e_steps, start_steps=0)
-    with mock.patch.object(trainer_module, "make_evaluate", _no_eval):
+    with mock.patch.object(trainer_module, "make_evaluate", no_eval):
         trainer = make_grid_train(config, Maze(rooms=config.rooms))
     eta, seeds = (jnp.asarray(x) for x in config.grid_arrays())
     box = [trainer.init(seeds)]
