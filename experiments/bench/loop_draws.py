@@ -1,0 +1,88 @@
+"""The epoch as the trainer runs it against session 32's: random draws inside the update loop, one critic input.
+
+    python experiments/bench/loop_draws.py                      # 3-room CSAC, one run (SPEC §7's speed yardstick)
+    python experiments/bench/loop_draws.py --rooms 2 --seeds 3  # 2-room grid of 3, members one at a time
+
+Since session 33 `learner.train_loops` draws every update's batch indices and
+action noise for the whole loop at once (the same numbers), and the critic's
+first layer takes obs and action apart (`networks.ConcatDense`, the same
+parameters). Until then each loop drew its own from its key, and the critic
+read their concatenation. Three versions of the same grid trainer (SPEC §7's
+settings: "small" preset, [64, 64], the paper's epoch of 5000 env steps and
+1000 joint updates, buffer 2e5, 10 evaluation episodes) are compiled in this
+one process, the older ones by patching those two pieces back in; their
+epochs alternate (order reversed every round) and the table gives each one's
+median and the median of the paired ratios against today's.
+"""
+from __future__ import annotations
+
+import dataclasses
+import statistics
+import sys
+from pathlib import Path
+from unittest import mock
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import tyro
+
+import ccp_jax.trainer as trainer_module
+from ccp_jax import buffer as replay
+from ccp_jax.config import make_config
+from ccp_jax.networks import MLP, TwinCritic
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from timed import TimedGrid, emitters_on_everywhere  # noqa: E402
+
+
+def draws_in_the_loop(learner, agents, buffer, eta, ready, key, loops, batch_size):
+    """Session 32's loop: each update draws its batch indices and noise from its own key."""
+    def loop(agents, k):
+        k_sample, k_update = jax.random.split(k)
+        return learner.update(agents, replay.sample(buffer, k_sample, batch_size), eta, ready, k_update)
+    return jax.lax.scan(loop, agents, jax.random.split(key, loops))
+
+
+class ConcatenatedInput(TwinCritic):
+    """Session 32's critic: one input, [obs, act] concatenated (the same parameters)."""
+
+    @nn.compact
+    def __call__(self, obs: jax.Array, act: jax.Array) -> jax.Array:
+        twin = nn.vmap(MLP, variable_axes={"params": 0}, split_rngs={"params": True},
+                       in_axes=None, out_axes=0, axis_size=2)
+        return twin(self.hidden, 1, init_scheme=self.init_scheme)(jnp.concatenate([obs, act], -1))[..., 0]
+
+
+@dataclasses.dataclass
+class Args:
+    rooms: int = 3
+    seeds: int = 1
+    """Grid size (members one at a time on CPU, the default)."""
+    reps: int = 8
+    """Timed epochs of each version."""
+
+
+def main(args: Args) -> None:
+    config = make_config("small", rooms=args.rooms, seeds=tuple(range(args.seeds)), buffer_size=200_000)
+    runs = {"today's": TimedGrid(config)}
+    with mock.patch.object(trainer_module, "train_loops", draws_in_the_loop):
+        runs["draws in the loop"] = TimedGrid(config)
+        with mock.patch("ccp_jax.learner.TwinCritic", ConcatenatedInput):
+            runs["both as in session 32"] = TimedGrid(config)
+    for r in range(args.reps):
+        for timed in (list(runs.values()) if r % 2 == 0 else list(runs.values())[::-1]):
+            timed.epoch()
+    ours = runs["today's"].times
+    print(f"\n{args.rooms}-room CSAC, grid of {args.seeds}, paper epoch, {args.reps} alternating epochs each\n")
+    print("| version | epoch s (median) | min | max | today's / this, median of paired ratios (min – max) |")
+    print("|---|---|---|---|---|")
+    for name, timed in runs.items():
+        ratios = [a / b for a, b in zip(ours, timed.times)]
+        print(f"| {name} | {timed.median:.3f} | {min(timed.times):.2f} | {max(timed.times):.2f} | "
+              f"{statistics.median(ratios):.3f} ({min(ratios):.3f} – {max(ratios):.3f}) |")
+
+
+if __name__ == "__main__":
+    emitters_on_everywhere()  # before JAX computes: every version compiled as the maze epoch is
+    main(tyro.cli(Args))
