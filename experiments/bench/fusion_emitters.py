@@ -12,7 +12,6 @@ median and the median of the paired ratios on/off.
 """
 from __future__ import annotations
 
-import dataclasses
 import statistics
 import sys
 from pathlib import Path
@@ -21,23 +20,13 @@ from unittest import mock
 import tyro
 
 import ccp_jax.trainer as trainer_module
-from ccp_jax.config import make_config
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from timed import TimedGrid  # noqa: E402
+from timed import Alternating, TimedGrid  # noqa: E402
 
 
-@dataclasses.dataclass
-class Args:
-    rooms: int = 3
-    seeds: int = 1
-    """Grid size (members one at a time on CPU, the default)."""
-    reps: int = 8
-    """Timed epochs of each version."""
-
-
-def main(args: Args) -> None:
-    config = make_config("small", rooms=args.rooms, seeds=tuple(range(args.seeds)), buffer_size=200_000)
+def main(args: Alternating) -> None:
+    config = args.config()
     with mock.patch.object(trainer_module, "cpu_compiler_options", lambda env: {}):
         off = TimedGrid(config)
     on = TimedGrid(config)
@@ -55,4 +44,4 @@ def main(args: Args) -> None:
 
 
 if __name__ == "__main__":
-    main(tyro.cli(Args))
+    main(tyro.cli(Alternating, description=__doc__))

@@ -16,7 +16,6 @@ median and the median of the paired ratios against today's.
 """
 from __future__ import annotations
 
-import dataclasses
 import statistics
 import sys
 from pathlib import Path
@@ -29,11 +28,10 @@ import tyro
 
 import ccp_jax.trainer as trainer_module
 from ccp_jax import buffer as replay
-from ccp_jax.config import make_config
 from ccp_jax.networks import MLP, TwinCritic
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from timed import TimedGrid, emitters_on_everywhere  # noqa: E402
+from timed import Alternating, TimedGrid, emitters_on_everywhere  # noqa: E402
 
 
 def draws_in_the_loop(learner, agents, buffer, eta, ready, key, loops, batch_size):
@@ -54,17 +52,8 @@ class ConcatenatedInput(TwinCritic):
         return twin(self.hidden, 1, init_scheme=self.init_scheme)(jnp.concatenate([obs, act], -1))[..., 0]
 
 
-@dataclasses.dataclass
-class Args:
-    rooms: int = 3
-    seeds: int = 1
-    """Grid size (members one at a time on CPU, the default)."""
-    reps: int = 8
-    """Timed epochs of each version."""
-
-
-def main(args: Args) -> None:
-    config = make_config("small", rooms=args.rooms, seeds=tuple(range(args.seeds)), buffer_size=200_000)
+def main(args: Alternating) -> None:
+    config = args.config()
     runs = {"today's": TimedGrid(config)}
     with mock.patch.object(trainer_module, "train_loops", draws_in_the_loop):
         runs["draws in the loop"] = TimedGrid(config)
@@ -85,4 +74,4 @@ def main(args: Args) -> None:
 
 if __name__ == "__main__":
     emitters_on_everywhere()  # before JAX computes: every version compiled as the maze epoch is
-    main(tyro.cli(Args))
+    main(tyro.cli(Alternating, description=__doc__))

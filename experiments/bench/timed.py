@@ -6,6 +6,7 @@ second compile is named and kept out of the timed epochs too.
 """
 from __future__ import annotations
 
+import dataclasses
 import os
 import statistics
 import time
@@ -18,7 +19,7 @@ from brax.envs.base import Env
 
 import ccp_jax.trainer as trainer_module
 from ccp_jax.collect import make_evaluate
-from ccp_jax.config import Config
+from ccp_jax.config import Config, make_config
 from ccp_jax.envs import make_env
 from ccp_jax.trainer import make_grid_train
 from envs_mjx import XLA_CPU_EMITTERS, XLA_CPU_FLAG
@@ -52,6 +53,21 @@ def avals(tree) -> list[tuple]:
     """(path, shape, dtype, weak_type) of every leaf: what jit's cache keys on."""
     return [(jax.tree_util.keystr(p), x.shape, x.dtype, getattr(x, "weak_type", False))
             for p, x in jax.tree_util.tree_flatten_with_path(tree)[0]]
+
+
+@dataclasses.dataclass
+class Alternating:
+    """The arguments of a script that times versions of one grid trainer in one process, epochs alternating."""
+
+    rooms: int = 3
+    seeds: int = 1
+    """Grid size (members one at a time on CPU, the default)."""
+    reps: int = 8
+    """Timed epochs of each version."""
+
+    def config(self) -> Config:
+        """SPEC §7's settings: "small" preset, [64, 64], the paper's epoch, buffer 2e5 per agent."""
+        return make_config("small", rooms=self.rooms, seeds=tuple(range(self.seeds)), buffer_size=200_000)
 
 
 class TimedEpochs:
