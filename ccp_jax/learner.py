@@ -339,8 +339,9 @@ def train_loops(learner: Learner, agents: AgentState, buffer: ReplayBuffer, eta:
     """`loops` joint updates, each on fresh batches from `buffer`: (agents, UpdateMetrics with leaves [loops, N]).
 
     Loop i draws from the i-th key of `key`; all loops' batch indices and noise are drawn at once,
-    before the loop (the same draws as inside it). On a CPU that made the epoch's updates ≈ 20 %
-    faster than drawing in the loop, whose small random-number loops run one after another.
+    before the loop (the same draws as inside it). Drawn inside it, each is a small random-number
+    loop run in series with the update: on a CPU the 1000 updates of SPEC §7's epoch ran ≈ 20 %
+    faster without them, the whole epoch 2 – 13 % (experiments/bench/loop_draws.py).
     """
     loop_keys = jax.vmap(jax.random.split)(jax.random.split(key, loops))
     idx = jax.vmap(lambda k: replay.sample_indices(buffer.size, k, batch_size))(loop_keys[:, 0])
