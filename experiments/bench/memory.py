@@ -5,9 +5,9 @@
 
 1. Layout. The bytes of one transition are read off the real replay buffer
    (`jax.eval_shape` of the trainer's `init`, so nothing is allocated) and
-   checked against the formula 4 · (2·obs + act + 1 + 2R) for float32 fields
+   checked against the formula 4 · (2·obs + act + 2 + 2R) for float32 fields
    obs, next_obs [obs], action [act], terminal [], rewards and completed [R]
-   (R = N reward channels for CSAC/Naive, 1 for SAC).
+   (R = N reward channels for CSAC/Naive, 1 for SAC), and the int32 next_stage [].
 2. The grid. G runs × N agents × capacity × bytes, plus the rest of each run's
    state (parameters, target critics, Adam moments, env states), also read off
    `eval_shape`.
@@ -103,12 +103,12 @@ def main(args: Args) -> dict:
     # 1. Layout.
     fields = transition_fields(state)
     per_transition = sum(fields.values())
-    formula = 4 * (2 * obs + act + 1 + 2 * r)
+    formula = 4 * (2 * obs + act + 2 + 2 * r)
     print(f"Transition layout ({config.env}, {config.num_stages} stages, {config.algo}: N = {n} agents, R = {r} "
           f"reward channels, obs {obs}, act {act}):")
     for name, b in fields.items():
         print(f"  {name:<10}{b:>5} B")
-    print(f"  {'total':<10}{per_transition:>5} B   formula 4·(2·{obs} + {act} + 1 + 2·{r}) = {formula} B "
+    print(f"  {'total':<10}{per_transition:>5} B   formula 4·(2·{obs} + {act} + 2 + 2·{r}) = {formula} B "
           f"[{'agrees' if formula == per_transition else 'DIFFERS'}]")
 
     # 2. The grid.
@@ -148,12 +148,12 @@ def main(args: Args) -> dict:
     # 3. Ways to fit it. Every env step goes to exactly one agent's buffer, so a run's agents hold at most
     # min(N · capacity, total_steps) transitions between them.
     pooled = min(n * cap, args.total_steps)
-    # Slim per-agent rows: agent n reads only reward/completed channels n and n + 1; flags fit in uint8.
+    # Slim per-agent rows: agent n reads only reward/completed channels n and n + 1; flags and next_stage fit in uint8.
     ch = min(r, 2)
-    slim = 4 * (2 * obs + act) + 4 * ch + 1 + ch
+    slim = 4 * (2 * obs + act) + 4 * ch + 1 + ch + 1
     # Pooled trajectory storage: obs once per step (next_obs = the following row, plus the final obs of each
-    # episode), all R channels once, uint8 flags, and an int32 index per agent's sample list.
-    dedup = 4 * (obs + act + r) + 1 + r + 4
+    # episode), all R channels once, uint8 flags and stage, and an int32 index per agent's sample list.
+    dedup = 4 * (obs + act + r) + 1 + r + 1 + 4
     rest = g * (other_run + temp_per_run)  # per program: the rest of the state and XLA's temporaries
     options = [
         ("as now, buffer_size 1e6 (paper)", "yes", "none", g * n * cap * per_transition + rest),
