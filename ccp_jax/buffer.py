@@ -33,7 +33,15 @@ class ReplayBuffer(struct.PyTreeNode):
 
     @property
     def capacity(self) -> int:
-        return self.data.obs.shape[1]
+        return self.data.obs.shape[-2]  # obs leaves are [..., capacity, obs], also under grid axes
+
+
+def zero_transition(obs_size: int, action_size: int, num_channels: int) -> Transition:
+    """A single all-zero transition of these sizes (the example `init_buffer` shapes buffers after)."""
+    return Transition(obs=jnp.zeros((obs_size,)), action=jnp.zeros((action_size,)),
+                      rewards=jnp.zeros((num_channels,)), next_obs=jnp.zeros((obs_size,)),
+                      terminal=jnp.zeros(()), completed=jnp.zeros((num_channels,)),
+                      next_stage=jnp.zeros((), jnp.int32))
 
 
 def init_buffer(example: Transition, num_agents: int, capacity: int) -> ReplayBuffer:

@@ -18,7 +18,7 @@ from flax import struct
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ccp_jax import buffer as replay
-from ccp_jax.buffer import ReplayBuffer, Transition
+from ccp_jax.buffer import ReplayBuffer
 from ccp_jax.collect import EvalMetrics, make_collect, make_evaluate, per_episode
 from ccp_jax.config import Config, ConfigError
 from ccp_jax.devices import grid_devices, pad_grid
@@ -75,11 +75,8 @@ def make_train(config: Config, env: Env) -> Trainer:
         key, k_agents, k_env = jax.random.split(key, 3)
         agents = init_agents(nets, k_agents, config.num_agents, obs_size, action_size,
                              value_range=config.value_bound, initial_alpha=config.initial_alpha)
-        example = Transition(obs=jnp.zeros((obs_size,)), action=jnp.zeros((action_size,)),
-                             rewards=jnp.zeros((num_channels,)), next_obs=jnp.zeros((obs_size,)),
-                             terminal=jnp.zeros(()), completed=jnp.zeros((num_channels,)),
-                             next_stage=jnp.zeros((), jnp.int32))
-        buffer = replay.init_buffer(example, config.num_agents, capacity)
+        buffer = replay.init_buffer(replay.zero_transition(obs_size, action_size, num_channels),
+                                    config.num_agents, capacity)
         env_state = jax.vmap(env.reset)(jax.random.split(k_env, config.num_envs))
         return TrainState(agents=agents, buffer=buffer, env_state=env_state, key=key,
                           env_steps=jnp.int32(0), epoch=jnp.int32(0))

@@ -49,3 +49,12 @@ def test_sampling_only_filled_slots_and_readiness():
     assert set(np.asarray(batch.action[0, :, 0]).tolist()) == {1.0, 2.0, 3.0}
     np.testing.assert_array_equal(replay.ready(buf, 3), [True, False])
     np.testing.assert_array_equal(replay.ready(buf, 4), [False, False])
+
+
+def test_zero_transition_shapes_buffers_and_capacity_holds_under_a_grid_axis():
+    example = replay.zero_transition(obs_size=5, action_size=2, num_channels=3)
+    chex.assert_shape([example.obs, example.action, example.rewards, example.terminal], [(5,), (2,), (3,), ()])
+    assert example.next_stage.dtype == jnp.int32
+    grid = jax.vmap(lambda _: replay.init_buffer(example, 4, 16))(jnp.arange(3))  # 3 runs, 4 agents, 16 slots
+    chex.assert_shape(grid.data.next_obs, (3, 4, 16, 5))
+    assert grid.capacity == 16 and replay.init_buffer(example, 4, 16).capacity == 16

@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import tyro
 
 from ccp_jax import buffer as replay
-from ccp_jax.buffer import ReplayBuffer, Transition
+from ccp_jax.buffer import ReplayBuffer
 from ccp_jax.config import make_config
 from ccp_jax.learner import init_agents, make_learner, make_networks, train_loops
 from timed import emitters_on_everywhere  # this folder: the script's own
@@ -69,8 +69,7 @@ def full_of_noise(buffer: ReplayBuffer, key: jax.Array) -> ReplayBuffer:
     """`buffer` (any leading axes) with every slot filled with uniform [0, 1) values, cast to each leaf's dtype."""
     leaves, treedef = jax.tree.flatten(buffer.data)
     full = [jax.random.uniform(k, x.shape).astype(x.dtype) for k, x in zip(jax.random.split(key, len(leaves)), leaves)]
-    capacity = buffer.data.obs.shape[-2]  # obs leaves are [..., capacity, obs]
-    return buffer.replace(data=jax.tree.unflatten(treedef, full), size=jnp.full_like(buffer.size, capacity))
+    return buffer.replace(data=jax.tree.unflatten(treedef, full), size=jnp.full_like(buffer.size, buffer.capacity))
 
 
 def main(args: Args) -> dict:
@@ -82,10 +81,7 @@ def main(args: Args) -> dict:
     agents = jax.vmap(lambda k: init_agents(nets, k, n, args.obs, args.act))(keys)
     r = config.num_agents if args.algo != "sac" else 1
     # Full buffers of random transitions: the trainer's loops then draw batches as late in training.
-    example = Transition(obs=jnp.zeros((args.obs,)), action=jnp.zeros((args.act,)), rewards=jnp.zeros((r,)),
-                         next_obs=jnp.zeros((args.obs,)), terminal=jnp.zeros(()), completed=jnp.zeros((r,)),
-                         next_stage=jnp.zeros((), jnp.int32))
-    empty = jax.vmap(lambda _: replay.init_buffer(example, n, args.buffer))(keys)
+    empty = jax.vmap(lambda _: replay.init_buffer(replay.zero_transition(args.obs, args.act, r), n, args.buffer))(keys)
     buffer = full_of_noise(empty, keys[0])
     eta, ready = jnp.full((args.grid, n), 0.5), jnp.ones((args.grid, n), bool)
 
