@@ -32,14 +32,30 @@ XLA_CPU_EMITTERS = "xla_cpu_use_fusion_emitters"  # the option's name, in $XLA_F
 XLA_CPU_FLAG = f"--{XLA_CPU_EMITTERS}=false"
 
 
+def emitter_switch_known(jaxlib_version: str | None = None) -> bool:
+    """Whether the installed XLA (``jaxlib_version``, default: the installed jaxlib's) still has the switch.
+
+    Newer XLA dropped it and aborts on it as an unknown flag (seen with jaxlib 0.11.2 on a GPU; 0.10.2
+    still has it), so it is only set where it exists.
+    """
+    if jaxlib_version is None:
+        from importlib.metadata import PackageNotFoundError, version
+        try:
+            jaxlib_version = version("jaxlib")
+        except PackageNotFoundError:
+            return False
+    major, minor = (int(part) for part in jaxlib_version.split(".")[:2])
+    return (major, minor) < (0, 11)
+
+
 def cpu_xla_flags(flags: str | None = None) -> str:
     """``flags`` (default: $XLA_FLAGS) with the CPU fusion-emitter switch appended if absent.
 
     Set ``os.environ["XLA_FLAGS"] = cpu_xla_flags()`` before JAX initialises its CPU
-    backend. A user's own setting of the flag is kept.
+    backend. A user's own setting of the flag is kept; an XLA without the switch gets nothing.
     """
     flags = os.environ.get("XLA_FLAGS", "") if flags is None else flags
-    if XLA_CPU_EMITTERS in flags:
+    if XLA_CPU_EMITTERS in flags or not emitter_switch_known():
         return flags
     return (flags + " " + XLA_CPU_FLAG).strip()
 
@@ -51,7 +67,7 @@ def cpu_compiler_options(env) -> dict[str, bool]:
     5-13 % faster with them (experiments/bench/fusion_emitters.py), so the trainer compiles its epoch
     with these options, whatever $XLA_FLAGS says. Empty for an env whose `backend` is "mjx" or unknown.
     """
-    if getattr(env, "backend", "mjx") == "mjx":
+    if getattr(env, "backend", "mjx") == "mjx" or not emitter_switch_known():
         return {}
     return {XLA_CPU_EMITTERS: True}
 

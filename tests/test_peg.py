@@ -303,6 +303,16 @@ def test_cpu_xla_flags_appends_without_overriding():
     assert P.cpu_xla_flags("--xla_cpu_use_fusion_emitters=true") == "--xla_cpu_use_fusion_emitters=true"
 
 
+def test_emitter_switch_is_left_out_where_xla_dropped_it(monkeypatch):
+    import envs_mjx
+
+    assert envs_mjx.emitter_switch_known("0.9.2") and envs_mjx.emitter_switch_known("0.10.2")
+    assert not envs_mjx.emitter_switch_known("0.11.2") and not envs_mjx.emitter_switch_known("1.0.0")
+    monkeypatch.setattr(envs_mjx, "emitter_switch_known", lambda: False)
+    assert envs_mjx.cpu_xla_flags("--foo=1") == "--foo=1"
+    assert envs_mjx.cpu_compiler_options(object()) == {}
+
+
 def test_model_geometry_makes_the_point():
     """Static check of the MJCF: the thin section fits the hole, the pads and thick section do not."""
     import mujoco

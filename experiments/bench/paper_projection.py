@@ -72,8 +72,15 @@ def programs(args: Args, domain: str) -> list[tuple[str, Config]]:
     return out
 
 
+def peak_gb() -> Optional[float]:
+    """The device's peak allocation so far in GB (this process, all programs), where the backend reports it (GPU, TPU)."""
+    stats = jax.devices()[0].memory_stats() or {}
+    return stats["peak_bytes_in_use"] / 1e9 if "peak_bytes_in_use" in stats else None
+
+
 def measure(name: str, domain: str, config: Config, epochs: int) -> dict:
     """Build, compile and time `epochs` warm epochs of `config`'s grid trainer."""
+    print(f"{time.strftime('%H:%M:%S')} {domain} {name}: G = {config.grid_size}, building and compiling", flush=True)
     t = time.perf_counter()
     timed = TimedGrid(config)
     setup_s = time.perf_counter() - t
@@ -86,7 +93,8 @@ def measure(name: str, domain: str, config: Config, epochs: int) -> dict:
                hidden=list(config.hidden), buffer=config.buffer_size, epoch_s=timed.median,
                per_run_epoch_s=timed.median / config.grid_size, compile_s=timed.compile_s,
                overhead_s=overhead_s, run_epochs=run_epochs, projected_s=run_epochs * timed.median + overhead_s,
-               device=str(jax.devices()[0].device_kind), platform=jax.devices()[0].platform,
+               peak_gb=peak_gb(), device=str(jax.devices()[0].device_kind), platform=jax.devices()[0].platform,
+               jax=jax.__version__,
                time=time.strftime("%Y-%m-%d %H:%M:%S"))
     del timed
     gc.collect()

@@ -1,0 +1,38 @@
+#!/usr/bin/env bash
+# The prepared GPU measurement, sized for one ≈ 9-minute call of a lent GPU:
+# the paper-scale Table I grids of paper_projection.py, most informative first
+# (3 rooms: grid and one run alone; then the 4-room, peg and 2-room grids),
+# each program's JSON line written as soon as it is measured.
+#
+#   OUT=/tmp/gpu bash experiments/bench/gpu_job.sh            # paper scale, stops itself after $BUDGET_S (540) s
+#   OUT=/tmp/gpu bash experiments/bench/gpu_job.sh smoke      # seconds, any machine: checks the script
+#
+# Where the machine lacks our packages, wheels in .whl/ are installed to /tmp/site first
+# (for a GPU image with its own jax: pyproject's pins for everything but jax/jaxlib).
+set -u
+OUT=${OUT:-/tmp/gpu_job}
+SCALE=${1:-paper}
+BUDGET_S=${BUDGET_S:-540}
+start=$(date +%s)
+mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1 PYTHONPATH="$PWD${PYTHONPATH:+:$PYTHONPATH}"
+if compgen -G ".whl/*.whl" >/dev/null; then
+  rm -rf /tmp/site; python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
+    && export PYTHONPATH="/tmp/site:$PYTHONPATH"
+fi
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null | tee "$OUT/env.txt"
+check='import jax, flax, optax, chex, brax, mujoco, ccp_jax.trainer, envs_mjx.peg_in_hole
+print("jax", jax.__version__, "flax", flax.__version__, "optax", optax.__version__, "chex", chex.__version__,
+      "brax", brax.__version__, "mujoco", mujoco.__version__, jax.devices())'
+if ! python3 -c "$check" 2>&1 | tee -a "$OUT/env.txt"; then
+  # The image's own flax/optax/chex/orbax may suit its jax better than our pins: try them.
+  rm -rf /tmp/site/flax* /tmp/site/optax* /tmp/site/chex* /tmp/site/orbax
+  python3 -c "$check" 2>&1 | tee -a "$OUT/env.txt" || exit 1
+fi
+
+left() { echo $((BUDGET_S - ($(date +%s) - start))); }
+P=experiments/bench/paper_projection.py
+timeout $(( $(left) * 2 / 5 )) python3 $P --scale "$SCALE" --domains maze3 --out "$OUT/projection.jsonl" 2>&1 | tee "$OUT/log.txt"
+timeout "$(left)" python3 $P --scale "$SCALE" --domains maze4 peg maze2 --no-single --out "$OUT/projection.jsonl" \
+  2>&1 | tee -a "$OUT/log.txt"
+echo "job done in $(( $(date +%s) - start )) s" | tee -a "$OUT/log.txt"
