@@ -7,9 +7,11 @@
 #   OUT=/tmp/gpu bash experiments/bench/gpu_job.sh            # paper scale, stops itself after $BUDGET_S (540) s
 #   OUT=/tmp/gpu bash experiments/bench/gpu_job.sh smoke      # seconds, any machine: checks the script
 #
-# Where the machine lacks our packages, wheels in .whl/ are installed to /tmp/site first
-# (for a GPU image with its own jax: pyproject's pins for everything but jax/jaxlib).
-set -u
+# Where the machine lacks our packages, wheels in .whl/ are installed to /tmp/site first. Carry only
+# what it lacks: a GPU image's own jax needs its own flax (flax 0.12.6 fails on jax 0.11). Session 34's
+# H200 lacked brax, mujoco, mujoco-core, mujoco-mjx, jaxopt, trimesh, glfw, tyro, docstring_parser and
+# typeguard (mujoco-studio, which only renders, can stay behind).
+set -u -o pipefail
 OUT=${OUT:-/tmp/gpu_job}
 SCALE=${1:-paper}
 BUDGET_S=${BUDGET_S:-540}
@@ -22,6 +24,7 @@ if compgen -G ".whl/*.whl" >/dev/null; then
 fi
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader 2>/dev/null | tee "$OUT/env.txt"
 check='import jax, flax, optax, chex, brax, mujoco, ccp_jax.trainer, envs_mjx.peg_in_hole
+flax.linen.Dense(2).init(jax.random.key(0), jax.numpy.ones(3))  # where a flax too old for this jax fails
 print("jax", jax.__version__, "flax", flax.__version__, "optax", optax.__version__, "chex", chex.__version__,
       "brax", brax.__version__, "mujoco", mujoco.__version__, jax.devices())'
 if ! python3 -c "$check" 2>&1 | tee -a "$OUT/env.txt"; then
