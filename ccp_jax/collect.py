@@ -10,7 +10,7 @@ from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
-from brax.envs.base import Env, State
+from brax.envs.base import Env, State, Wrapper
 
 from ccp_jax.buffer import ReplayBuffer, Transition, add
 from ccp_jax.config import Config
@@ -23,6 +23,26 @@ class EpisodeStats(NamedTuple):
     episodes: jax.Array  # float32[]
     successes: jax.Array  # float32[]
     stages: jax.Array  # float32[N]: of which reached stage n (see `stage_counts`)
+
+
+class TracedOnce(Wrapper):
+    """`env` whose `reset` and `step` JAX traces once per argument shapes, however many places call them.
+
+    Each is a `jax.jit` of the env's own, whose traced jaxpr JAX keeps and reuses, also under `vmap`
+    (it traces at the unbatched shapes). A run's programs call `reset` in init, auto-reset and
+    evaluation and `step` in collection and evaluation; an MJX env's are slow to trace (peg: ≈ 3 s
+    each alone, ≈ 8 s under `vmap`). XLA inlines the calls, so the compiled programs are the same.
+    """
+
+    def __init__(self, env: Env):
+        super().__init__(env)
+        self._reset, self._step = jax.jit(env.reset), jax.jit(env.step)
+
+    def reset(self, rng: jax.Array) -> State:
+        return self._reset(rng)
+
+    def step(self, state: State, action: jax.Array) -> State:
+        return self._step(state, action)
 
 
 def per_episode(count: jax.Array, episodes: jax.Array) -> jax.Array:

@@ -15,11 +15,11 @@ import jax.numpy as jnp
 import numpy as np
 from brax.envs.base import Env, State
 from flax import struct
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jax.sharding import Mesh, NamedSharding, PartitionSpec, SingleDeviceSharding
 
 from ccp_jax import buffer as replay
 from ccp_jax.buffer import ReplayBuffer
-from ccp_jax.collect import EvalMetrics, make_collect, make_evaluate, per_episode
+from ccp_jax.collect import EvalMetrics, TracedOnce, make_collect, make_evaluate, per_episode
 from ccp_jax.config import Config, ConfigError
 from ccp_jax.devices import grid_devices, pad_grid
 from ccp_jax.learner import (AgentState, Networks, UpdateMetrics, init_agents, make_learner, make_networks,
@@ -63,6 +63,7 @@ def make_train(config: Config, env: Env) -> Trainer:
     if env.num_stages != config.num_stages:
         raise ValueError(f"rooms: the env has {env.num_stages} stages but the config expects {config.num_stages}")
     obs_size, action_size = env.observation_size, env.action_size
+    env = TracedOnce(env)
     nets = make_networks(config, action_size)
     collect = make_collect(config, env, nets.actor)
     evaluate = make_evaluate(config, env, nets.actor)
@@ -163,7 +164,10 @@ class GridTrainer:
         wanted = min(members_at_once or default_members_at_once(self.devices, local), local)
         self.members_at_once = max(k for k in range(1, wanted + 1) if local % k == 0)  # equal groups
         mesh, spec = Mesh(np.array(self.devices), ("grid",)), PartitionSpec("grid")
-        self.sharding = NamedSharding(mesh, spec)
+        # One device needs no mesh: then the env's calls share one trace (`TracedOnce`), which they
+        # cannot where the state's type records the grid axis and a fresh reset's does not.
+        one = len(self.devices) == 1
+        self.sharding = SingleDeviceSharding(self.devices[0]) if one else NamedSharding(mesh, spec)
 
         def local_step(state: TrainState, eta: jax.Array):
             if self.members_at_once == local:
@@ -174,7 +178,8 @@ class GridTrainer:
             out = jax.lax.map(lambda x: jax.vmap(trainer.train_step)(*x), grouped)
             return jax.tree.map(lambda x: x.reshape((local,) + x.shape[2:]), out)
 
-        step = jax.shard_map(local_step, mesh=mesh, in_specs=(spec, spec), out_specs=(spec, spec), check_vma=False)
+        step = local_step if one else jax.shard_map(
+            local_step, mesh=mesh, in_specs=(spec, spec), out_specs=(spec, spec), check_vma=False)
         self._init = jax.jit(jax.vmap(trainer.init), in_shardings=self.sharding, out_shardings=self.sharding)
         # Compile options only apply where they were measured: CPU (`envs_mjx.cpu_compiler_options`).
         self.compiler_options = cpu_compiler_options(env) if self.devices[0].platform == "cpu" else {}

@@ -267,3 +267,27 @@ def test_the_epoch_compiles_with_fusion_emitters_on_unless_the_env_runs_mjx():
     config = make_config("tiny", rooms=2)
     assert make_grid_train(config, Maze(rooms=2)).compiler_options == on
     assert make_grid_train(config, MjxMaze(rooms=2)).compiler_options == {}
+
+
+def test_env_is_traced_once_per_call_kind_on_one_device():
+    """Init, auto-reset and evaluation share one trace of `reset`, collection and evaluation one of `step`."""
+    from envs_mjx.maze import Maze
+
+    traced = {"reset": 0, "step": 0}
+
+    class Counting(Maze):
+        def reset(self, rng):
+            traced["reset"] += 1
+            return super().reset(rng)
+
+        def step(self, state, action):
+            traced["step"] += 1
+            return super().step(state, action)
+
+    config = make_config("tiny", rooms=2)
+    trainer = make_grid_train(config, Counting(rooms=2, episode_length=config.max_episode_steps),
+                              devices=jax.devices()[:1])
+    eta, seeds = config.grid_arrays()
+    state = trainer.abstract_state(seeds)
+    trainer._step.trace(state, trainer._pad(eta))  # the epoch's program, traced but not compiled
+    assert traced == {"reset": 1, "step": 1}
