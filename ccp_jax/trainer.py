@@ -142,9 +142,9 @@ class GridTrainer:
     """A `Trainer` mapped over the grid axis, jitted, and sharded over devices.
 
     The grid axis (seeds × ratios) is split across `devices` (default: those
-    `grid_devices` picks of the visible ones) with a 1-D mesh; a grid that does
-    not divide evenly is padded with copies of its last member, whose results
-    are dropped. On each device, `members_at_once`
+    `grid_devices` picks of the visible ones) with a 1-D mesh (one device: no
+    mesh, a plain `jit`); a grid that does not divide evenly is padded with
+    copies of its last member, whose results are dropped. On each device, `members_at_once`
     members (rounded down to a divisor of the device's share) are vmapped
     together, and such groups run one after another inside the same compiled
     program (`jax.lax.map`); the default is `default_members_at_once`. Results

@@ -65,7 +65,8 @@ def cpu_compiler_options(env) -> dict[str, bool]:
 
     `cpu_xla_flags` turns the emitters off process-wide, for MJX's sake only; the maze's epoch runs
     5-13 % faster with them (experiments/bench/fusion_emitters.py), so the trainer compiles its epoch
-    with these options, whatever $XLA_FLAGS says. Empty for an env whose `backend` is "mjx" or unknown.
+    with these options, whatever $XLA_FLAGS says. Empty for an env whose `backend` is "mjx" or unknown,
+    and where XLA no longer has the switch (`emitter_switch_known`).
     """
     if getattr(env, "backend", "mjx") == "mjx" or not emitter_switch_known():
         return {}

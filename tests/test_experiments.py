@@ -355,6 +355,7 @@ def test_paper_projection_builds_table1s_grids_and_sums_the_sweeps():
     assert progs["csac single"].grid_size == 1
     assert progs["sac"].grid_size == progs["naive"].grid_size == 5
     assert progs["csac grid"].total_steps // progs["csac grid"].steps_per_epoch == 600
+    assert [name for name, _ in pp.programs(pp.Args(scale="paper", grid=False), "peg")] == ["csac single"]
 
     def row(program, grid, epoch_s, projected_s):
         return dict(domain="maze4", program=program, grid=grid, agents=4, epoch_s=epoch_s,

@@ -1,8 +1,7 @@
 #!/usr/bin/env bash
-# The prepared GPU measurement, sized for one ≈ 9-minute call of a lent GPU:
-# the paper-scale Table I grids of paper_projection.py, most informative first
-# (3 rooms: grid and one run alone; then the 4-room, peg and 2-room grids),
-# each program's JSON line written as soon as it is measured.
+# The prepared GPU measurement, sized for one ≈ 9-minute call of a lent GPU: what no GPU has
+# measured yet (session 34 timed the paper-scale maze grids, experiments/bench/README.md), most
+# informative first, each program's JSON line written as soon as it is measured.
 #
 #   OUT=/tmp/gpu bash experiments/bench/gpu_job.sh            # paper scale, stops itself after $BUDGET_S (540) s
 #   OUT=/tmp/gpu bash experiments/bench/gpu_job.sh smoke      # seconds, any machine: checks the script
@@ -35,7 +34,13 @@ fi
 
 left() { echo $((BUDGET_S - ($(date +%s) - start))); }
 P=experiments/bench/paper_projection.py
-timeout $(( $(left) * 2 / 5 )) python3 $P --scale "$SCALE" --domains maze3 --out "$OUT/projection.jsonl" 2>&1 | tee "$OUT/log.txt"
-timeout "$(left)" python3 $P --scale "$SCALE" --domains maze4 peg maze2 --no-single --out "$OUT/projection.jsonl" \
+# Session 34 timed the maze grids; what no GPU has timed yet comes first: one peg run alone (MJX: compile
+# or epochs?), brax's SAC against ours on the same maze work, then the peg grid.
+timeout $(( $(left) / 3 )) python3 $P --scale "$SCALE" --domains peg --no-grid --out "$OUT/projection.jsonl" \
+  2>&1 | tee "$OUT/log.txt"
+if [ "$SCALE" = smoke ]; then brax_args="--hidden 16 16 --epoch-steps 500 --epochs 1 --rounds 1 --buffer 5000"; \
+else brax_args="--epochs 2 --rounds 1"; fi
+timeout $(( $(left) / 2 )) python3 experiments/bench/vs_brax.py $brax_args 2>&1 | tee -a "$OUT/log.txt"
+timeout "$(left)" python3 $P --scale "$SCALE" --domains peg --no-single --out "$OUT/projection.jsonl" \
   2>&1 | tee -a "$OUT/log.txt"
 echo "job done in $(( $(date +%s) - start )) s" | tee -a "$OUT/log.txt"

@@ -53,6 +53,8 @@ class Args:
     """Warm epochs timed per program (median reported)."""
     baselines: bool = False
     """Also time the SAC and Naive grids of each domain."""
+    grid: bool = True
+    """Time the CSAC grid (`--no-grid`: one run alone only, e.g. to size a slow domain first)."""
     single: bool = True
     """Also time one CSAC run alone (for the per-run cost ratio)."""
     out: Optional[Path] = None
@@ -64,7 +66,7 @@ def programs(args: Args, domain: str) -> list[tuple[str, Config]]:
     """(name, config) of each program to time for `domain`, as table1.py builds them."""
     scale = SCALES[args.scale]
     sweep = scale.config(domain, "csac", etas=[(e,) for e in scale.etas])
-    out = [("csac grid", sweep)]
+    out = [("csac grid", sweep)] if args.grid else []
     if args.single:
         out.append(("csac single", scale.config(domain, "csac", etas=[(scale.etas[0],)], seeds=1)))
     if args.baselines:
@@ -115,7 +117,7 @@ def report(rows: list[dict]) -> str:
     total = sum(r["projected_s"] for r in sweeps)
     lines.append(f"\nProjected Table I ({', '.join(sorted({r['program'] for r in sweeps}))}; "
                  f"{len({r['domain'] for r in sweeps})} domains, one program after another): {total / 3600:.2f} h "
-                 f"on {rows[0]['device']}." if rows else "\nNothing measured.")
+                 f"on {rows[0]['device']}." if sweeps else "\nNo sweep measured: nothing to project.")
     return "\n".join(lines)
 
 

@@ -41,6 +41,7 @@ import sys
 from pathlib import Path
 
 import jax
+import numpy as np
 import tyro
 from brax.envs.base import Env, State
 
@@ -119,6 +120,25 @@ def updates_per_epoch(args: Args) -> int:
     return args.epoch_steps * args.grad_updates_per_step // args.num_envs
 
 
+def restore_device_put_replicated() -> None:
+    """Puts back `jax.device_put_replicated` (removed in jax 0.10), which brax 0.14.2's trainers call.
+
+    JAX's migration guide's replacement: the value stacked once per device, sharded over them.
+    """
+    try:
+        jax.device_put_replicated  # noqa: B018 (deprecated but present before jax 0.10)
+        return
+    except AttributeError:
+        pass
+
+    def device_put_replicated(x, devices):
+        sharding = jax.sharding.NamedSharding(jax.sharding.Mesh(np.array(devices), ("d",)),
+                                              jax.sharding.PartitionSpec("d"))
+        return jax.device_put(jax.tree.map(lambda a: np.stack([np.asarray(a)] * len(devices)), x), sharding)
+
+    jax.device_put_replicated = device_put_replicated
+
+
 def run_brax(args: Args, seed: int, after_epoch=lambda: None) -> dict:
     """One brax SAC training of (epochs + 1) epochs; per-epoch wall times from its own timer.
 
@@ -127,6 +147,7 @@ def run_brax(args: Args, seed: int, after_epoch=lambda: None) -> dict:
     from brax.training.agents.sac import networks as sac_networks
     from brax.training.agents.sac import train as sac
 
+    restore_device_put_replicated()
     sps: list[float] = []
 
     def progress(step, metrics):
