@@ -30,7 +30,8 @@ class TracedOnce(Wrapper):
 
     Each is a `jax.jit` of the env's own, whose traced jaxpr JAX keeps and reuses, also under `vmap`
     (it traces at the unbatched shapes). A run's programs call `reset` in init, auto-reset and
-    evaluation and `step` in collection and evaluation; an MJX env's are slow to trace (peg: ≈ 3 s
+    evaluation and `step` in collection and evaluation (TP's: in init, rollouts and evaluation);
+    `make_train` and `make_tp_train` wrap their env in it. An MJX env's are slow to trace (peg: ≈ 3 s
     each alone, ≈ 8 s under `vmap`). XLA inlines the calls, so the compiled programs are the same.
     """
 

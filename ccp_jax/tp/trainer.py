@@ -17,7 +17,7 @@ import optax
 from brax.envs.base import Env, State
 from flax import struct
 
-from ccp_jax.collect import EvalMetrics, per_episode
+from ccp_jax.collect import EvalMetrics, TracedOnce, per_episode
 from ccp_jax.config import Config
 from ccp_jax.trainer import GridTrainer, Trainer
 from ccp_jax.tp.networks import (Proximity, RunningNorm, TransitionPolicy, Value, norm_init, norm_update,
@@ -88,6 +88,7 @@ def make_tp_train(config: Config, env: Env, primitives: Primitives) -> Trainer:
     if env.num_stages != config.num_stages:
         raise ValueError(f"rooms: the env has {env.num_stages} stages but the config expects {config.num_stages}")
     obs_size, action_size, num_k = env.observation_size, env.action_size, config.num_stages - 1
+    env = TracedOnce(env)  # reset and step are called in init, rollouts and evaluation: trace each once
     nets = TPNets(policy=TransitionPolicy(config.tp_hidden, action_size), value=Value(config.tp_hidden),
                   proximity=Proximity(config.tp_prox_hidden), primitives=primitives)
     ppo_tx = optax.adam(config.tp_lr)
