@@ -32,7 +32,8 @@ class TracedOnce(Wrapper):
     (it traces at the unbatched shapes). A run's programs call `reset` in init, auto-reset and
     evaluation and `step` in collection and evaluation (TP's: in init, rollouts and evaluation);
     `make_train` and `make_tp_train` wrap their env in it. An MJX env's are slow to trace (peg: ≈ 3 s
-    each alone, ≈ 8 s under `vmap`). XLA inlines the calls, so the compiled programs are the same.
+    each alone, ≈ 8 s under `vmap`). XLA inlines the calls: on one device results are bit for bit those of the
+    unwrapped env; under several devices' shard_map they differ by float rounding.
     """
 
     def __init__(self, env: Env):
