@@ -341,14 +341,19 @@ def train_loops(learner: Learner, agents: AgentState, buffer: ReplayBuffer, eta:
     Loop i draws from the i-th key of `key`; all loops' batch indices and noise are drawn at once,
     before the loop (the same draws as inside it). Drawn inside it, each is a small random-number
     loop run in series with the update: on a CPU the 1000 updates of SPEC §7's epoch ran ≈ 20 %
-    faster without them, the whole epoch 2 – 13 % (experiments/bench/loop_draws.py).
+    faster without them, the whole epoch 2 – 13 %. Loop i also gathers loop i + 1's batch (the
+    same batches), so that gather overlaps the update instead of preceding it (experiments/bench/epoch_versions.py).
     """
     loop_keys = jax.vmap(jax.random.split)(jax.random.split(key, loops))
     idx = jax.vmap(lambda k: replay.sample_indices(buffer.size, k, batch_size))(loop_keys[:, 0])
     noise = jax.vmap(lambda k: learner.draw_noise(k, batch_size))(loop_keys[:, 1])
+    ahead = jnp.roll(idx, -1, axis=0)  # the last loop gathers the first batch again, unused
 
-    def loop(agents, drawn):
-        idx, noise = drawn
-        return learner.update_with_noise(agents, replay.gather(buffer, idx), eta, ready, noise)
+    def loop(carry, drawn):
+        agents, batch = carry
+        next_idx, noise = drawn
+        agents, metrics = learner.update_with_noise(agents, batch, eta, ready, noise)
+        return (agents, replay.gather(buffer, next_idx)), metrics
 
-    return jax.lax.scan(loop, agents, (idx, noise))
+    (agents, _), metrics = jax.lax.scan(loop, (agents, replay.gather(buffer, idx[0])), (ahead, noise))
+    return agents, metrics

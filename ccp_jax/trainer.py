@@ -163,10 +163,11 @@ class GridTrainer:
         check_members_at_once(members_at_once)
         wanted = min(members_at_once or default_members_at_once(self.devices, local), local)
         self.members_at_once = max(k for k in range(1, wanted + 1) if local % k == 0)  # equal groups
-        mesh, spec = Mesh(np.array(self.devices), ("grid",)), PartitionSpec("grid")
-        # One device needs no mesh: then the env's calls share one trace (`TracedOnce`), which they
-        # cannot where the state's type records the grid axis and a fresh reset's does not.
+        # One device needs no mesh: then the env's calls share one trace (`TracedOnce`). Under shard_map
+        # they cannot: the carried env state is typed varying over the grid axis where a fresh reset's
+        # constant leaves (done, steps, ...) are not, and init runs outside the mesh's context.
         one = len(self.devices) == 1
+        mesh, spec = (None, None) if one else (Mesh(np.array(self.devices), ("grid",)), PartitionSpec("grid"))
         self.sharding = SingleDeviceSharding(self.devices[0]) if one else NamedSharding(mesh, spec)
 
         def local_step(state: TrainState, eta: jax.Array):

@@ -10,7 +10,7 @@ from ccp_jax import buffer as replay
 from ccp_jax import losses
 from ccp_jax.buffer import Transition
 from ccp_jax.config import make_config
-from ccp_jax.learner import init_agents, make_learner, make_networks
+from ccp_jax.learner import init_agents, make_learner, make_networks, train_loops
 from ccp_jax.networks import sample_action
 
 OBS, ACT, B = 5, 2, 16
@@ -331,3 +331,27 @@ def test_critic_first_layer_is_a_dense_layer_on_obs_and_action_together():
     d_act = jax.grad(lambda a: nets.critic.apply(params, obs, a).sum())(act)
     d_x = jax.grad(lambda x: by_hand(x).sum())(x)
     np.testing.assert_allclose(d_act, d_x[:, 24:], rtol=1e-5, atol=1e-6)
+
+
+def test_train_loops_are_updates_on_the_batches_drawn_for_them(csac):
+    """`train_loops` gathers loop i + 1's batch during loop i: the result must be the plain loop of
+    `update_with_noise` on each loop's own batch (same draws), up to XLA's float rounding (≈ 1e-10 here)."""
+    config, nets, agents, _, _ = csac
+    learner = make_learner(config, nets, ACT)
+    empty = replay.init_buffer(replay.zero_transition(OBS, ACT, 2), 2, 64)
+    leaves, treedef = jax.tree.flatten(empty.data)
+    keys = jax.random.split(jax.random.PRNGKey(7), len(leaves))
+    data = [jax.random.uniform(k, x.shape).astype(x.dtype) for k, x in zip(keys, leaves)]
+    buffer = empty.replace(data=jax.tree.unflatten(treedef, data), size=jnp.array([64, 20], jnp.int32))
+    eta, ready, key, loops = jnp.array([0.3, 1.0]), jnp.array([True, True]), jax.random.PRNGKey(8), 4
+    got, metrics = jax.jit(lambda a: train_loops(learner, a, buffer, eta, ready, key, loops, B))(agents)
+    chex.assert_shape(metrics.q_loss, (loops, 2))
+
+    def plain(agents):  # the same draws and scan, each loop gathering its own batch first
+        keys = jax.vmap(jax.random.split)(jax.random.split(key, loops))
+        idx = jax.vmap(lambda k: replay.sample_indices(buffer.size, k, B))(keys[:, 0])
+        noise = jax.vmap(lambda k: learner.draw_noise(k, B))(keys[:, 1])
+        loop = lambda agents, x: learner.update_with_noise(agents, replay.gather(buffer, x[0]), eta, ready, x[1])
+        return jax.lax.scan(loop, agents, (idx, noise))[0]
+
+    chex.assert_trees_all_close(got, jax.jit(plain)(agents), rtol=1e-5, atol=1e-8)

@@ -1,18 +1,20 @@
-"""The epoch as the trainer runs it against session 32's: random draws inside the update loop, one critic input.
+"""The epoch as the trainer runs it against its earlier versions, in one process.
 
-    python experiments/bench/loop_draws.py                      # 3-room CSAC, one run (SPEC §7's speed yardstick)
-    python experiments/bench/loop_draws.py --rooms 2 --seeds 3  # 2-room grid of 3, members one at a time
+    python experiments/bench/epoch_versions.py                      # 3-room CSAC, one run (SPEC §7's speed yardstick)
+    python experiments/bench/epoch_versions.py --rooms 2 --seeds 3  # 2-room grid of 3, members one at a time
 
-Since session 33 `learner.train_loops` draws every update's batch indices and
-action noise for the whole loop at once (the same numbers), and the critic's
-first layer takes obs and action apart (`networks.ConcatDense`, the same
-parameters). Until then each loop drew its own from its key, and the critic
-read their concatenation. Three versions of the same grid trainer (SPEC §7's
-settings: "small" preset, [64, 64], the paper's epoch of 5000 env steps and
-1000 joint updates, buffer 2e5, 10 evaluation episodes) are compiled in this
-one process, the older ones by patching those two pieces back in; their
-epochs alternate (order reversed every round) and the table gives each one's
-median and the median of the paired ratios against today's.
+The versions, newest first; each puts one more piece back as it was:
+- today's: each update gathers the next update's batch (`learner.train_loops`), so the gather
+  runs beside the update instead of before it;
+- "gather before each update" (session 34's epoch): each update gathers its own batch first;
+- "draws in the loop" (session 32's loop): each update draws its batch indices and action noise
+  from its own key, where since session 33 the whole loop's are drawn at once before it;
+- "session 32": also the critic reading [obs, act] concatenated, where since session 33 its first
+  layer takes them apart (`networks.ConcatDense`, the same parameters).
+All are the same grid trainer (SPEC §7's settings: "small" preset, [64, 64], the paper's epoch of
+5000 env steps and 1000 joint updates, buffer 2e5, 10 evaluation episodes), the older ones built by
+patching those pieces back in; their epochs alternate (order reversed every round) and the table
+gives each one's median and the median of the paired ratios against today's.
 """
 from __future__ import annotations
 
@@ -32,6 +34,18 @@ from ccp_jax.networks import MLP, TwinCritic
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from timed import Alternating, TimedGrid, emitters_on_everywhere  # noqa: E402
+
+
+def gather_before_each_update(learner, agents, buffer, eta, ready, key, loops, batch_size):
+    """Session 34's loop: draws made before it, each update gathering its own batch first."""
+    loop_keys = jax.vmap(jax.random.split)(jax.random.split(key, loops))
+    idx = jax.vmap(lambda k: replay.sample_indices(buffer.size, k, batch_size))(loop_keys[:, 0])
+    noise = jax.vmap(lambda k: learner.draw_noise(k, batch_size))(loop_keys[:, 1])
+
+    def loop(agents, drawn):
+        idx, noise = drawn
+        return learner.update_with_noise(agents, replay.gather(buffer, idx), eta, ready, noise)
+    return jax.lax.scan(loop, agents, (idx, noise))
 
 
 def draws_in_the_loop(learner, agents, buffer, eta, ready, key, loops, batch_size):
@@ -55,10 +69,12 @@ class ConcatenatedInput(TwinCritic):
 def main(args: Alternating) -> None:
     config = args.config()
     runs = {"today's": TimedGrid(config)}
+    with mock.patch.object(trainer_module, "train_loops", gather_before_each_update):
+        runs["gather before each update (session 34)"] = TimedGrid(config)
     with mock.patch.object(trainer_module, "train_loops", draws_in_the_loop):
         runs["draws in the loop"] = TimedGrid(config)
         with mock.patch("ccp_jax.learner.TwinCritic", ConcatenatedInput):
-            runs["both as in session 32"] = TimedGrid(config)
+            runs["session 32"] = TimedGrid(config)
     for r in range(args.reps):
         for timed in (list(runs.values()) if r % 2 == 0 else list(runs.values())[::-1]):
             timed.epoch()
