@@ -1,4 +1,7 @@
 """The joint update's wiring: cross-buffer critic terms, per-agent α and π, masking."""
+import sys
+from pathlib import Path
+
 import chex
 import jax
 import jax.numpy as jnp
@@ -334,24 +337,18 @@ def test_critic_first_layer_is_a_dense_layer_on_obs_and_action_together():
 
 
 def test_train_loops_are_updates_on_the_batches_drawn_for_them(csac):
-    """`train_loops` gathers loop i + 1's batch during loop i: the result must be the plain loop of
-    `update_with_noise` on each loop's own batch (same draws), up to XLA's float rounding (≈ 1e-10 here)."""
+    """`train_loops` gathers loop i + 1's batch during loop i: the result must be session 34's loop,
+    each update on its own batch gathered first (same draws), up to XLA's float rounding (≈ 1e-10 here)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments" / "bench"))
+    from epoch_versions import gather_before_each_update
+    from update_speed import full_of_noise
+
     config, nets, agents, _, _ = csac
     learner = make_learner(config, nets, ACT)
     empty = replay.init_buffer(replay.zero_transition(OBS, ACT, 2), 2, 64)
-    leaves, treedef = jax.tree.flatten(empty.data)
-    keys = jax.random.split(jax.random.PRNGKey(7), len(leaves))
-    data = [jax.random.uniform(k, x.shape).astype(x.dtype) for k, x in zip(keys, leaves)]
-    buffer = empty.replace(data=jax.tree.unflatten(treedef, data), size=jnp.array([64, 20], jnp.int32))
+    buffer = full_of_noise(empty, jax.random.PRNGKey(7)).replace(size=jnp.array([64, 20], jnp.int32))
     eta, ready, key, loops = jnp.array([0.3, 1.0]), jnp.array([True, True]), jax.random.PRNGKey(8), 4
-    got, metrics = jax.jit(lambda a: train_loops(learner, a, buffer, eta, ready, key, loops, B))(agents)
+    run = lambda loops_fn: jax.jit(lambda a: loops_fn(learner, a, buffer, eta, ready, key, loops, B))(agents)
+    got, metrics = run(train_loops)
     chex.assert_shape(metrics.q_loss, (loops, 2))
-
-    def plain(agents):  # the same draws and scan, each loop gathering its own batch first
-        keys = jax.vmap(jax.random.split)(jax.random.split(key, loops))
-        idx = jax.vmap(lambda k: replay.sample_indices(buffer.size, k, B))(keys[:, 0])
-        noise = jax.vmap(lambda k: learner.draw_noise(k, B))(keys[:, 1])
-        loop = lambda agents, x: learner.update_with_noise(agents, replay.gather(buffer, x[0]), eta, ready, x[1])
-        return jax.lax.scan(loop, agents, (idx, noise))[0]
-
-    chex.assert_trees_all_close(got, jax.jit(plain)(agents), rtol=1e-5, atol=1e-8)
+    chex.assert_trees_all_close(got, run(gather_before_each_update)[0], rtol=1e-5, atol=1e-8)
