@@ -580,3 +580,20 @@ def test_vs_prototype_reports_times_against_the_prototype_and_scaled_to_spec_roo
     assert "| 3 rooms, one run | one run | 1 | 3.00 (2.00–9.00) | 74 | 2.5 | 1.20 | 1.50 | 0.60 |" in text
     assert "| 2 rooms, grid of 3 | one device, vmapped | 1 | 6.00 (6.00–6.00) | 148 | 4.0 | 1.50 | 6.00 | 1.50 |" in text
     assert {c.figure for c in vp.CONFIGS.values()} == {"3 rooms, one run", "2 rooms, grid of 3"}  # both of SPEC §7's
+
+
+def test_vs_rejax_reports_the_median_of_paired_ratios_per_grid():
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments" / "bench"))
+    import vs_rejax  # rejax itself is imported only when a RejaxRun is built
+
+    prog = lambda times, compile_s=1.0: {"times": times, "compile_s": compile_s}
+    row = {"grid": 4, "programs": {"rejax_no_eval": prog([2.0, 3.0, 9.0], 18.0), "rejax": prog([2.0, 2.0, 2.0]),
+                                   "ours_no_eval": prog([1.0, 1.0, 1.0], 10.0), "ours": prog([4.0, 1.0, 1.0]),
+                                   "rejax_uniform": prog([1.0, 1.5, 0.5])}}
+    text = vs_rejax.report([row], vs_rejax.Args())
+    # same work: 2, 3, 9 -> 3; with evaluation 0.5, 2, 2 -> 2; rejax with our sampler / ours 1, 1.5, 0.5 -> 1
+    assert "| 4 | ours | 1.00 | 3.00 (2.00–9.00) | 1.00 | 10.0 |" in text
+    assert "| 4 | ours, with its evaluation | 1.00 | 2.00 (0.50–2.00) |  | 1.0 |" in text
+    assert "| 4 | rejax SAC | 3.00 | 1.00 (1.00–1.00) | 0.50 | 18.0 |" in text
+    assert "ours, members vmapped" not in text  # only the programs that ran
+    assert "5000 env steps and 1000 updates per seed" in text

@@ -2,7 +2,9 @@
 
 Compile time is measured apart: the first epoch compiles, and if it changes
 any state leaf's type (which would make the second call compile again) that
-second compile is named and kept out of the timed epochs too.
+second compile is named and kept out of the timed epochs too. `SameWork` and
+`our_sac` are the settings and our side of the comparisons with other SAC
+trainers (vs_brax.py, vs_rejax.py).
 """
 from __future__ import annotations
 
@@ -23,6 +25,7 @@ from ccp_jax.config import Config, make_config
 from ccp_jax.envs import make_env
 from ccp_jax.trainer import make_grid_train
 from envs_mjx import XLA_CPU_EMITTERS, XLA_CPU_FLAG
+from envs_mjx.maze import Maze
 
 
 def emitters_on_everywhere() -> None:
@@ -120,3 +123,42 @@ class TimedGrid(TimedEpochs):
     def _step(self):
         self.state, metrics = self.trainer.train_step(self.state, self.eta)
         return self.state, metrics
+
+
+@dataclasses.dataclass
+class SameWork:
+    """End-to-end SAC on the maze as both sides of a comparison with another SAC trainer run it."""
+
+    hidden: tuple[int, ...] = (64, 64)
+    """Hidden layers of actor and each critic (both trainers)."""
+    rooms: int = 2
+    batch: int = 256
+    num_envs: int = 5
+    """Envs stepped together."""
+    grad_updates_per_step: int = 1
+    """Updates per step of num_envs envs: 1 with 5 envs is the paper's 0.2 updates per env step."""
+    epoch_steps: int = 5000
+    """Env steps per timed epoch (the paper's epoch: 5000)."""
+    buffer: int = 100_000
+    start_steps: int = 1000
+    """Env steps before the first update (ours: uniform-random actions; the other trainer: its prefill)."""
+    eval_episodes: int = 10
+    episode_length: int = 1000
+
+
+def updates_per_epoch(args: SameWork) -> int:
+    if (args.epoch_steps * args.grad_updates_per_step) % args.num_envs or args.epoch_steps % args.num_envs:
+        raise SystemExit("epoch_steps must be a multiple of num_envs")
+    return args.epoch_steps * args.grad_updates_per_step // args.num_envs
+
+
+def our_sac(args: SameWork, seeds: Sequence[int], evaluate: bool, members_at_once: int | None = None) -> TimedGrid:
+    """Our grid trainer, one agent (`algo="sac"`), on `args`' work: one member per seed (`members_at_once`:
+    as `make_grid_train`'s, default one at a time on a CPU)."""
+    config = make_config(
+        "paper", rooms=args.rooms, algo="sac", hidden=args.hidden, batch_size=args.batch,
+        num_envs=args.num_envs, steps_per_epoch=args.epoch_steps, train_loops_per_epoch=updates_per_epoch(args),
+        total_steps=1000 * args.epoch_steps, buffer_size=args.buffer, start_steps=args.start_steps,
+        eval_episodes=args.eval_episodes, max_episode_steps=args.episode_length, seeds=tuple(seeds))
+    return TimedGrid(config, Maze(rooms=args.rooms, episode_length=args.episode_length), evaluate,
+                     members_at_once=members_at_once)

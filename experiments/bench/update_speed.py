@@ -65,6 +65,13 @@ def matmul_roof(batch: int, width: int, reps: int) -> float:
     return 2 * batch * width * width * chain / timed(f, x, w, reps=reps)
 
 
+def print_roof(batch: int, width: int) -> float:
+    """Measures and prints `matmul_roof` at [batch, width] @ [width, width]; returns GFLOP/s."""
+    roof = matmul_roof(batch, width, reps=3) / 1e9
+    print(f"jnp.dot roof at [{batch}, {width}] @ [{width}, {width}]: {roof:.0f} GFLOP/s")
+    return roof
+
+
 def full_of_noise(buffer: ReplayBuffer, key: jax.Array) -> ReplayBuffer:
     """`buffer` (any leading axes) with every slot filled with uniform [0, 1) values, cast to each leaf's dtype."""
     leaves, treedef = jax.tree.flatten(buffer.data)

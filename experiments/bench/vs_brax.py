@@ -45,35 +45,21 @@ import numpy as np
 import tyro
 from brax.envs.base import Env, State
 
-from ccp_jax.config import make_config
 from envs_mjx.maze import Maze
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from timed import TimedGrid, emitters_on_everywhere  # noqa: E402
-from update_speed import matmul_roof  # noqa: E402
+from timed import SameWork, emitters_on_everywhere, our_sac, updates_per_epoch  # noqa: E402
+from update_speed import print_roof  # noqa: E402
 
 
 @dataclasses.dataclass
-class Args:
+class Args(SameWork):
     hidden: tuple[int, ...] = (256, 256)
     """Hidden layers of actor and each critic (both trainers)."""
-    rooms: int = 2
-    batch: int = 256
-    num_envs: int = 5
-    """Envs stepped together (brax's num_envs; ours num_envs)."""
-    grad_updates_per_step: int = 1
-    """Updates per actor step of num_envs envs: 1 with 5 envs is the paper's 0.2 updates per env step."""
-    epoch_steps: int = 5000
-    """Env steps per timed epoch (the paper's epoch: 5000)."""
     epochs: int = 3
     """Timed epochs per brax training (plus its first epoch, which compiles)."""
     rounds: int = 2
     """brax trainings; after each brax epoch one epoch of each of ours runs, so the pairs share the load."""
-    buffer: int = 100_000
-    start_steps: int = 1000
-    """Ours: uniform-random steps; brax: min_replay_size (prefill, untimed)."""
-    eval_episodes: int = 10
-    episode_length: int = 1000
     roof: bool = True
     """Also measure the jnp.dot roof at the widest layer, for context."""
 
@@ -112,12 +98,6 @@ class BraxMaze(Env):
     @property
     def backend(self) -> str:
         return "jax"
-
-
-def updates_per_epoch(args: Args) -> int:
-    if (args.epoch_steps * args.grad_updates_per_step) % args.num_envs or args.epoch_steps % args.num_envs:
-        raise SystemExit("epoch_steps must be a multiple of num_envs")
-    return args.epoch_steps * args.grad_updates_per_step // args.num_envs
 
 
 def restore_device_put_replicated() -> None:
@@ -181,22 +161,12 @@ def run_brax(args: Args, seed: int, after_epoch=lambda: None) -> dict:
     return {"epoch_s": times, "compile_s": times[0] - statistics.median(times[1:])}
 
 
-def our_run(args: Args, seed: int, evaluate: bool) -> TimedGrid:
-    """Our grid trainer with one member and one agent (`algo="sac"`) on the same work as brax's."""
-    config = make_config(
-        "paper", rooms=args.rooms, algo="sac", hidden=args.hidden, batch_size=args.batch,
-        num_envs=args.num_envs, steps_per_epoch=args.epoch_steps, train_loops_per_epoch=updates_per_epoch(args),
-        total_steps=1000 * args.epoch_steps, buffer_size=args.buffer, start_steps=args.start_steps,
-        eval_episodes=args.eval_episodes, max_episode_steps=args.episode_length, seeds=(seed,))
-    return TimedGrid(config, Maze(rooms=args.rooms, episode_length=args.episode_length), evaluate)
-
-
 def main(args: Args) -> dict:
     updates = updates_per_epoch(args)
     print(f"maze rooms={args.rooms}, hidden={args.hidden}, batch={args.batch}, num_envs={args.num_envs}, "
           f"{args.epoch_steps} env steps + {updates} updates per epoch, {args.rounds} brax trainings × "
           f"{args.epochs} timed epochs, each followed by one epoch of each of ours; devices={jax.devices()}")
-    ours = {"ours": our_run(args, 0, evaluate=True), "ours_no_eval": our_run(args, 0, evaluate=False)}
+    ours = {"ours": our_sac(args, (0,), evaluate=True), "ours_no_eval": our_sac(args, (0,), evaluate=False)}
     runs = {"brax": [], "ours": [], "ours_no_eval": []}
     compiles = {"brax": [], **{k: [o.compile_s] for k, o in ours.items()}}
     for r in range(args.rounds):
@@ -234,10 +204,7 @@ def main(args: Args) -> dict:
     result = {"args": dataclasses.asdict(args), "rows": rows, "ratio": paired["ours_no_eval"],
               "ratio_with_eval": paired["ours"]}
     if args.roof:
-        roof = matmul_roof(args.batch, max(args.hidden), reps=3)
-        print(f"jnp.dot roof at [{args.batch}, {max(args.hidden)}] @ [{max(args.hidden)}, {max(args.hidden)}]: "
-              f"{roof / 1e9:.0f} GFLOP/s")
-        result["roof_gflops"] = roof / 1e9
+        result["roof_gflops"] = print_roof(args.batch, max(args.hidden))
     return result
 
 
