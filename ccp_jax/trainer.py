@@ -21,7 +21,7 @@ from ccp_jax import buffer as replay
 from ccp_jax.buffer import ReplayBuffer
 from ccp_jax.collect import EvalMetrics, TracedOnce, make_collect, make_evaluate, per_episode
 from ccp_jax.config import Config, ConfigError
-from ccp_jax.devices import grid_devices, pad_grid
+from ccp_jax.devices import available_cores, grid_devices, pad_grid
 from ccp_jax.learner import (AgentState, Networks, UpdateMetrics, init_agents, make_learner, make_networks,
                              train_loops)
 from envs_mjx import cpu_compiler_options
@@ -127,15 +127,40 @@ def check_members_at_once(members_at_once: int | None) -> None:
         raise ConfigError("members_at_once", f"must be >= 1, got {members_at_once}")
 
 
-def default_members_at_once(devices: Sequence[jax.Device], local_members: int) -> int:
-    """How many grid members one device advances together by default.
+# On a CPU, how many floats one layer's stacked critic activations of a device's vmapped members may
+# take (members × critic slots × batch × widest layer): 12 slots of SPEC §7's [64, 64] at batch 256,
+# ≈ 0.75 MB. Measured on the 2-core CPU (experiments/bench/README.md, "Members vmapped on a CPU").
+CPU_VMAP_FLOATS = 12 * 256 * 64
 
-    On a GPU/TPU all of them (vmapped: the batching fills the device). On a CPU
-    one at a time: a single [64, 64] run already keeps the cores busy, and
-    vmapping 16 runs made each run's update ≈ 20 % slower (its working set
-    leaves the cache; experiments/bench/README.md).
+
+def critic_slots(config: Config) -> int:
+    """Critic evaluations in one member's update: 2N − 1 for CSAC (its cross-buffer terms), else N."""
+    n = config.num_agents
+    return 2 * n - 1 if config.algo == "csac" and n > 1 else n
+
+
+def default_members_at_once(devices: Sequence[jax.Device], local_members: int, config: Config,
+                            cores_per_device: float | None = None) -> int:
+    """How many grid members one device advances together (vmapped) by default.
+
+    On a GPU/TPU all of them: the batching fills the device. On a CPU device
+    with several cores (`cores_per_device`, default: the available cores over
+    the process's CPU devices) as many as keep one layer's stacked critic
+    activations within `CPU_VMAP_FLOATS`: XLA runs a small run's ops one core
+    each, and vmapped members' larger ops use the cores better (a [64, 64] SAC
+    grid of 4 on one 2-core device: 1.4× faster than one at a time), until the
+    batched working set leaves the cache (3-agent CSAC, 16 members: each update
+    ≈ 20 % slower). On a CPU split into a device per core (the CLI's split for
+    grids) one member at a time: there vmapping was 7–10 % slower.
     """
-    return 1 if devices[0].platform == "cpu" else local_members
+    if devices[0].platform != "cpu":
+        return local_members
+    if cores_per_device is None:
+        cores_per_device = available_cores() / len(jax.devices("cpu"))
+    if cores_per_device < 2:
+        return 1
+    per_member = critic_slots(config) * config.batch_size * max(config.hidden)
+    return max(1, CPU_VMAP_FLOATS // per_member)
 
 
 class GridTrainer:
@@ -161,7 +186,7 @@ class GridTrainer:
         self.padded_size = -(-self.grid_size // len(self.devices)) * len(self.devices)
         local = self.padded_size // len(self.devices)
         check_members_at_once(members_at_once)
-        wanted = min(members_at_once or default_members_at_once(self.devices, local), local)
+        wanted = min(members_at_once or default_members_at_once(self.devices, local, config), local)
         self.members_at_once = max(k for k in range(1, wanted + 1) if local % k == 0)  # equal groups
         # One device needs no mesh: then the env's calls share one trace (`TracedOnce`). Under shard_map
         # they cannot: the carried env state is typed varying over the grid axis where a fresh reset's

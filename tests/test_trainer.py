@@ -1,5 +1,6 @@
 """The trainer end to end: shapes, grid = single runs, determinism, learning, CLI outputs."""
 import json
+import types
 
 import chex
 import jax
@@ -12,7 +13,7 @@ from ccp_jax.config import ConfigError, make_config
 from ccp_jax.envs import make_env
 from ccp_jax.networks import Actor
 from ccp_jax.train import main
-from ccp_jax.trainer import make_grid_train
+from ccp_jax.trainer import critic_slots, default_members_at_once, make_grid_train
 from toy_env import Line
 
 GRID = make_config("tiny", rooms=2, etas=((0.1,), (0.9,)), seeds=(0, 1), total_steps=400)
@@ -132,14 +133,33 @@ def test_grid_member_equals_the_run_alone(grid_run):
 
 def test_vmapped_members_equal_members_one_at_a_time(grid_run):
     trainer, (state, history) = grid_run
-    assert trainer.members_at_once == 1  # the CPU default: one member after another
-    vmapped = make_grid_train(GRID, make_env(GRID), members_at_once=GRID.grid_size)
-    v_state, v_history = _train(GRID, vmapped, 2)
-    for a, b in zip(jax.tree.leaves(state.agents), jax.tree.leaves(v_state.agents)):
+    assert trainer.members_at_once in (1, GRID.grid_size)  # the CPU default for tiny nets: all four on ≥ 2 cores
+    one_at_a_time = make_grid_train(GRID, make_env(GRID), members_at_once=1)
+    assert one_at_a_time.members_at_once == 1
+    o_state, o_history = _train(GRID, one_at_a_time, 2)
+    for a, b in zip(jax.tree.leaves(state.agents), jax.tree.leaves(o_state.agents)):
         np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-5)
-    np.testing.assert_allclose(history[-1].train.q_loss, v_history[-1].train.q_loss, rtol=1e-4)
+    np.testing.assert_allclose(history[-1].train.q_loss, o_history[-1].train.q_loss, rtol=1e-4)
     with pytest.raises(ConfigError, match="^members_at_once:"):
         make_grid_train(GRID, make_env(GRID), members_at_once=0)
+
+
+def test_cpu_default_vmaps_members_while_their_critic_activations_stay_small():
+    cpu, gpu = [types.SimpleNamespace(platform=p) for p in ("cpu", "gpu")]
+    small = lambda **kw: make_config("small", **kw)  # [64, 64], batch 256: SPEC §7's settings
+    default = lambda config, cores=2.0, devices=(cpu,): default_members_at_once(list(devices), 32, config, cores)
+    # CPU_VMAP_FLOATS holds 12 critic slots of [64, 64] at batch 256; CSAC has 2N − 1 slots per member
+    assert critic_slots(small(algo="sac")) == 1 and critic_slots(small(algo="naive", rooms=3)) == 3
+    assert [critic_slots(small(rooms=n)) for n in (2, 3, 4)] == [3, 5, 7]
+    assert default(small(algo="sac")) == 12
+    assert [default(small(rooms=n)) for n in (2, 3, 4)] == [4, 2, 1]
+    assert default(small(rooms=3, hidden=(256, 256))) == 1  # never below one
+    assert default(small(algo="sac"), cores=1.0) == 1  # a CPU split into a device per core: one at a time
+    assert default(small(rooms=4), devices=(gpu,)) == 32  # accelerators: the whole local grid
+    # the trainer rounds the default down to a divisor of the device's members (the tests' CPU: one device)
+    sixteen = small(algo="sac", seeds=tuple(range(16)))
+    expected = 8 if default_members_at_once(jax.devices()[:1], 16, sixteen) == 12 else 1
+    assert make_grid_train(sixteen, make_env(sixteen), jax.devices()[:1]).members_at_once == expected
 
 
 @pytest.mark.parametrize("algo", ["csac", "sac"])
