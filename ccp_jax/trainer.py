@@ -156,7 +156,7 @@ def default_members_at_once(devices: Sequence[jax.Device], local_members: int, c
     if devices[0].platform != "cpu":
         return local_members
     if cores_per_device is None:
-        cores_per_device = available_cores() / len(jax.devices("cpu"))
+        cores_per_device = available_cores() / len(jax.local_devices(backend="cpu"))
     if cores_per_device < 2:
         return 1
     per_member = critic_slots(config) * config.batch_size * max(config.hidden)
