@@ -120,6 +120,8 @@ class Config:
     # that α_n weighs entropy against values as Naive's α does, in the actor loss and the critic target alike.
     coop_scale: CoopScale = "unit"
     eta_auto_range: tuple[float, float] = (0.05, 0.95)
+    # κ of "auto": η* = Ran(Q_n) / (Ran(Q_n) + κ Ran(Q_{n+1})) recovers Q_n + κ Q_{n+1}; 1 is the appendix's sum.
+    eta_auto_next_weight: float = 1.0
     # TP (Transition Policies, Lee et al. 2019; ccp_jax/tp). Primitives: a finished --algo naive run.
     primitives: str | None = None
     primitives_member: int = 0
@@ -308,6 +310,8 @@ class Config:
             raise ConfigError("initial_alpha", f"must be a positive finite number, got {self.initial_alpha}")
         if self.target_entropy is not None and not math.isfinite(self.target_entropy):
             raise ConfigError("target_entropy", f"must be a finite number (or None for −|A|), got {self.target_entropy}")
+        if not (math.isfinite(self.eta_auto_next_weight) and self.eta_auto_next_weight > 0):
+            raise ConfigError("eta_auto_next_weight", f"must be a positive finite number, got {self.eta_auto_next_weight}")
         lo, hi = self.eta_auto_range
         if not 0.0 <= lo <= hi <= 1.0:
             raise ConfigError("eta_auto_range", f"must satisfy 0 <= low <= high <= 1, got {self.eta_auto_range}")

@@ -188,8 +188,8 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
             lo, scale = b_lo, b_hi - b_lo
         q_hat = losses.normalise(q_pair, config.norm_eps, lo[..., None], scale[..., None])
         # "auto" (NaN) members use η* from the running ranges, clipped; others their own η.
-        auto = jnp.clip(losses.eta_star(e_hi[:, 0] - e_lo[:, 0], e_hi[:, 1] - e_lo[:, 1], config.norm_eps),
-                        *config.eta_auto_range)
+        auto = jnp.clip(losses.eta_star(e_hi[:, 0] - e_lo[:, 0], e_hi[:, 1] - e_lo[:, 1], config.norm_eps,
+                                        config.eta_auto_next_weight), *config.eta_auto_range)
         eta_used = jnp.where(has_next & cooperative, jnp.where(jnp.isnan(eta), auto, eta), 1.0)
         keep = ready[:, None]
         new = NormState(lo=jnp.where(keep, e_lo, norm.lo), hi=jnp.where(keep, e_hi, norm.hi))

@@ -63,7 +63,10 @@ def alpha_loss(log_alpha: jax.Array, log_prob: jax.Array, target_entropy: float)
     return -jnp.mean(log_alpha * jax.lax.stop_gradient(log_prob + target_entropy))
 
 
-def eta_star(range_own: jax.Array, range_next: jax.Array, eps: float) -> jax.Array:
-    """The ratio that recovers the sum Q_n + Q_{n+1}: Ran(Q_n) / (Ran(Q_n) + Ran(Q_{n+1}))."""
-    return range_own / (range_own + range_next + eps)
+def eta_star(range_own: jax.Array, range_next: jax.Array, eps: float, next_weight: float = 1.0) -> jax.Array:
+    """The ratio that recovers the sum Q_n + κ Q_{n+1}: Ran(Q_n) / (Ran(Q_n) + κ Ran(Q_{n+1})), κ = `next_weight`.
+
+    κ = 1 is the appendix's η*; κ > 1 weighs the next critic more than the plain sum does.
+    """
+    return range_own / (range_own + next_weight * range_next + eps)
 

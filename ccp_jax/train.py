@@ -104,6 +104,8 @@ class Args:
     """The last agent's actor uses its normalised critic (η_N = 1 on Q̂_N) instead of the plain SAC loss."""
     eta_auto_range: Optional[tuple[float, float]] = None
     """--eta auto: the interval η* is clipped to (default 0.05 0.95)."""
+    eta_auto_next_weight: Optional[float] = None
+    """--eta auto: κ in η* = Ran(Q_n) / (Ran(Q_n) + κ Ran(Q_{n+1})), the ratio whose objective is Q_n + κ Q_{n+1} (default 1, the paper's appendix)."""
     normaliser: Optional[Normaliser] = None
     """How critics are scaled in the actor loss: batch (the paper's, default), ema (running min/max), floor, none (raw Q: C_n is the value of the cooperative reward η r_n + (1 − η) r_{n+1})."""
     norm_floor: Optional[float] = None
@@ -143,6 +145,7 @@ OVERRIDES = ("maze_reverse", "maze_slide", "total_steps", "num_envs", "hidden", 
              "buffer_size", "steps_per_epoch", "train_loops_per_epoch", "train_cycles_per_epoch", "eval_episodes", "max_episode_steps", "gamma", "absorbing_stages",
              "absorbing_success", "tanh_log_prob", "normaliser", "norm_floor", "norm_ema_rate", "coop_scale", "next_action", "tau",
              "actor_lr", "critic_lr", "alpha_lr", "target_entropy", "initial_alpha", "start_steps", "normalise_last", "eta_auto_range",
+             "eta_auto_next_weight",
              "primitives_member", "tp_max_steps", "tp_init_episodes", "tp_prox_updates", "tp_ppo_epochs", "tp_buffer_size")
 
 

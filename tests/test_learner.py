@@ -183,6 +183,13 @@ def test_running_bounds_and_auto_eta_against_hand_values():
     assert float(metrics.range_own[0]) == pytest.approx(ranges[0], rel=1e-4)
     # Agent 1 has no next critic and keeps η = 1.
     assert float(metrics.eta_used[1]) == 1.0
+    # κ = 4 (--eta-auto-next-weight): the next critic's range counts four times; the logged η* stays the appendix's.
+    weighted = make_learner(config.replace(eta_auto_next_weight=4.0), nets, ACT)
+    _, w_metrics = jax.jit(weighted.update)(agents, batch, jnp.array([jnp.nan, 1.0]), jnp.array([True, True]), key)
+    assert float(w_metrics.eta_used[0]) == pytest.approx(np.clip(ranges[0] / (ranges[0] + 4 * ranges[1]), 0.05, 0.95),
+                                                         rel=1e-4)
+    assert float(w_metrics.eta_used[0]) < float(metrics.eta_used[0])
+    np.testing.assert_allclose(w_metrics.eta_star, metrics.eta_star, rtol=1e-6)
 
 
 @pytest.mark.parametrize("coop_scale", ["unit", "own"])

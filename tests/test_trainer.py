@@ -233,12 +233,15 @@ def test_every_hyperparameter_reaches_the_config_from_the_cli():
                                 "--alpha-lr", "3e-3", "--start-steps", "50", "--normalise-last", "True",
                                 "--eta-auto-range", "0.2", "0.8", "--next-action", "acting", "--normaliser", "ema",
                                 "--train-cycles-per-epoch", "10", "--network-init", "rlkit", "--initial-alpha", "0.05",
-                                "--coop-scale", "own"])
+                                "--coop-scale", "own", "--eta-auto-next-weight", "4"])
     config = config_from_args(args)
     assert (config.tau, config.actor_lr, config.critic_lr, config.alpha_lr) == (0.01, 1e-3, 2e-3, 3e-3)
     assert (config.start_steps, config.normalise_last, config.eta_auto_range) == (50, True, (0.2, 0.8))
     assert (config.next_action, config.normaliser, config.train_cycles_per_epoch) == ("acting", "ema", 10)
     assert (config.network_init, config.initial_alpha, config.coop_scale) == ("rlkit", 0.05, "own")
+    assert config.eta_auto_next_weight == 4.0
+    with pytest.raises(ConfigError, match="^eta_auto_next_weight:"):
+        config_from_args(tyro.cli(Args, args=["--preset", "tiny", "--eta-auto-next-weight", "0"]))
     with pytest.raises(ConfigError, match="^eta_auto_range:"):
         config_from_args(tyro.cli(Args, args=["--preset", "tiny", "--eta-auto-range", "0.9", "0.1"]))
 
