@@ -130,6 +130,17 @@ class Learner(NamedTuple):
     action_pulls: Callable  # (agents, batch, eta, key) -> (float32[N], float32[N])
 
 
+def is_cooperative(config: Config) -> bool:
+    """CSAC with more than one agent: critics get cross-buffer terms and actors a next critic."""
+    return config.algo == "csac" and config.num_agents > 1
+
+
+def critic_slots(config: Config) -> int:
+    """Critic evaluations in one member's update, the slots `make_learner` stacks: 2N − 1 when cooperative, else N."""
+    n = config.num_agents
+    return 2 * n - 1 if is_cooperative(config) else n
+
+
 def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
     """Returns `Learner.update(agents, batch, eta, ready, key) -> (agents, UpdateMetrics)`.
 
@@ -139,7 +150,7 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
     all of its noise at once, outside the loop, and get the same numbers.
     """
     n_agents = config.num_agents
-    cooperative = config.algo == "csac" and n_agents > 1
+    cooperative = is_cooperative(config)
     agent_ids = jnp.arange(n_agents)
     target_entropy = -float(action_size) if config.target_entropy is None else config.target_entropy
     own_ids = jnp.zeros_like(agent_ids) if n_agents == 1 else agent_ids

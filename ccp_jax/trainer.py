@@ -22,8 +22,8 @@ from ccp_jax.buffer import ReplayBuffer
 from ccp_jax.collect import EvalMetrics, TracedOnce, make_collect, make_evaluate, per_episode
 from ccp_jax.config import Config, ConfigError
 from ccp_jax.devices import available_cores, grid_devices, pad_grid
-from ccp_jax.learner import (AgentState, Networks, UpdateMetrics, init_agents, make_learner, make_networks,
-                             train_loops)
+from ccp_jax.learner import (AgentState, Networks, UpdateMetrics, critic_slots, init_agents, make_learner,
+                             make_networks, train_loops)
 from envs_mjx import cpu_compiler_options
 
 
@@ -131,12 +131,6 @@ def check_members_at_once(members_at_once: int | None) -> None:
 # take (members × critic slots × batch × widest layer): 12 slots of SPEC §7's [64, 64] at batch 256,
 # ≈ 0.75 MB. Measured on the 2-core CPU (experiments/bench/README.md, "Members vmapped on a CPU").
 CPU_VMAP_FLOATS = 12 * 256 * 64
-
-
-def critic_slots(config: Config) -> int:
-    """Critic evaluations in one member's update: 2N − 1 for CSAC (its cross-buffer terms), else N."""
-    n = config.num_agents
-    return 2 * n - 1 if config.algo == "csac" and n > 1 else n
 
 
 def default_members_at_once(devices: Sequence[jax.Device], local_members: int, config: Config,

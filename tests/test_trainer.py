@@ -13,7 +13,8 @@ from ccp_jax.config import ConfigError, make_config
 from ccp_jax.envs import make_env
 from ccp_jax.networks import Actor
 from ccp_jax.train import main
-from ccp_jax.trainer import critic_slots, default_members_at_once, make_grid_train
+from ccp_jax.learner import critic_slots
+from ccp_jax.trainer import default_members_at_once, make_grid_train
 from toy_env import Line
 
 GRID = make_config("tiny", rooms=2, etas=((0.1,), (0.9,)), seeds=(0, 1), total_steps=400)
