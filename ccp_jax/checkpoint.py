@@ -99,6 +99,10 @@ def restore(mngr: ocp.CheckpointManager, abstract_state: Any, item: str = "state
     except Exception as err:  # orbax raises many types for damaged files
         raise _unreadable(folder, epoch, steps, err) from err
     target = _nonempty(abstract_state)
+    if set(meta) != set(target):
+        raise CheckpointError(f"{folder / str(epoch)} holds {len(meta)} arrays where this version's {item} has "
+                              f"{len(target)}: it was saved by another version of ccp-jax (or of the env); "
+                              "start the run afresh")
     slots = {m.shape[0] for m in meta.values()}
     repad = grid_size is not None and slots != {x.shape[0] for x in target.values()} and min(slots) >= grid_size
     if repad and jax.process_count() > 1:

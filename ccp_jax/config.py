@@ -26,6 +26,8 @@ NetworkInit = Literal["flax", "rlkit"]
 NETWORK_INITS = ("flax", "rlkit")
 CoopScale = Literal["unit", "own"]
 COOP_SCALES = ("unit", "own")
+EtaAutoRule = Literal["ranges", "outcomes"]
+ETA_AUTO_RULES = ("ranges", "outcomes")
 # The maze kinematics of every run before config.json recorded them (sessions 1-27): reversing, stopping at walls.
 LEGACY_MAZE = {"maze_reverse": True, "maze_slide": False}
 AUTO = "auto"  # a ratio estimated during training (η*), see `Config.eta_auto_range`
@@ -122,6 +124,12 @@ class Config:
     eta_auto_range: tuple[float, float] = (0.05, 0.95)
     # κ of "auto": η* = Ran(Q_n) / (Ran(Q_n) + κ Ran(Q_{n+1})) recovers Q_n + κ Q_{n+1}; 1 is the appendix's sum.
     eta_auto_next_weight: float = 1.0
+    # What "auto" follows: "ranges", the appendix's η* from the critics' running ranges (weighted by κ
+    # above), or "outcomes", a controller on where the training episodes fail (`trainer.outcome_eta`):
+    # each epoch η_n moves by `eta_auto_rate` × (episodes failing in stage n − episodes failing in
+    # stage n + 1) / episodes entering stage n, from the middle of `eta_auto_range`, within it.
+    eta_auto_rule: EtaAutoRule = "ranges"
+    eta_auto_rate: float = 0.05
     # TP (Transition Policies, Lee et al. 2019; ccp_jax/tp). Primitives: a finished --algo naive run.
     primitives: str | None = None
     primitives_member: int = 0
@@ -312,6 +320,10 @@ class Config:
             raise ConfigError("target_entropy", f"must be a finite number (or None for −|A|), got {self.target_entropy}")
         if not (math.isfinite(self.eta_auto_next_weight) and self.eta_auto_next_weight > 0):
             raise ConfigError("eta_auto_next_weight", f"must be a positive finite number, got {self.eta_auto_next_weight}")
+        if self.eta_auto_rule not in ETA_AUTO_RULES:
+            raise ConfigError("eta_auto_rule", f"unknown rule {self.eta_auto_rule!r}; choose one of {ETA_AUTO_RULES}")
+        if not (math.isfinite(self.eta_auto_rate) and 0.0 < self.eta_auto_rate <= 1.0):
+            raise ConfigError("eta_auto_rate", f"must be in (0, 1], got {self.eta_auto_rate}")
         lo, hi = self.eta_auto_range
         if not 0.0 <= lo <= hi <= 1.0:
             raise ConfigError("eta_auto_range", f"must satisfy 0 <= low <= high <= 1, got {self.eta_auto_range}")

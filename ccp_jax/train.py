@@ -22,7 +22,7 @@ from tqdm.auto import tqdm
 
 from ccp_jax import checkpoint, loggers, outputs
 from ccp_jax.devices import CpuDevices, grid_devices, split_host_cpu
-from ccp_jax.config import (PRESETS, Config, ConfigError, CoopScale, NetworkInit, NextAction, Normaliser, PresetName, TanhLogProb,
+from ccp_jax.config import (PRESETS, Config, ConfigError, CoopScale, EtaAutoRule, NetworkInit, NextAction, Normaliser, PresetName, TanhLogProb,
                              make_config, parse_eta, parse_eta_vector)
 from ccp_jax.envs import make_env, user_env
 from ccp_jax.trainer import check_members_at_once, make_grid_train
@@ -106,6 +106,10 @@ class Args:
     """--eta auto: the interval η* is clipped to (default 0.05 0.95)."""
     eta_auto_next_weight: Optional[float] = None
     """--eta auto: κ in η* = Ran(Q_n) / (Ran(Q_n) + κ Ran(Q_{n+1})), the ratio whose objective is Q_n + κ Q_{n+1} (default 1, the paper's appendix)."""
+    eta_auto_rule: Optional[EtaAutoRule] = None
+    """--eta auto follows: ranges (η* of the critics' running ranges, the paper's appendix, default) or outcomes (each epoch η_n moves by --eta-auto-rate × (training episodes failing in stage n − those failing in stage n + 1) / those entering stage n, from the middle of --eta-auto-range)."""
+    eta_auto_rate: Optional[float] = None
+    """--eta auto with --eta-auto-rule outcomes: η's largest move per epoch (default 0.05)."""
     normaliser: Optional[Normaliser] = None
     """How critics are scaled in the actor loss: batch (the paper's, default), ema (running min/max), floor, none (raw Q: C_n is the value of the cooperative reward η r_n + (1 − η) r_{n+1})."""
     norm_floor: Optional[float] = None
@@ -145,7 +149,7 @@ OVERRIDES = ("maze_reverse", "maze_slide", "total_steps", "num_envs", "hidden", 
              "buffer_size", "steps_per_epoch", "train_loops_per_epoch", "train_cycles_per_epoch", "eval_episodes", "max_episode_steps", "gamma", "absorbing_stages",
              "absorbing_success", "tanh_log_prob", "normaliser", "norm_floor", "norm_ema_rate", "coop_scale", "next_action", "tau",
              "actor_lr", "critic_lr", "alpha_lr", "target_entropy", "initial_alpha", "start_steps", "normalise_last", "eta_auto_range",
-             "eta_auto_next_weight",
+             "eta_auto_next_weight", "eta_auto_rule", "eta_auto_rate",
              "primitives_member", "tp_max_steps", "tp_init_episodes", "tp_prox_updates", "tp_ppo_epochs", "tp_buffer_size")
 
 

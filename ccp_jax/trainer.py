@@ -36,6 +36,7 @@ class TrainState(struct.PyTreeNode):
     key: jax.Array
     env_steps: jax.Array  # int32[]
     epoch: jax.Array  # int32[]
+    eta_auto: jax.Array  # float32[N]: the "outcomes" rule's ratios for "auto" members (`outcome_eta`)
 
 
 class EpochMetrics(NamedTuple):
@@ -58,6 +59,24 @@ class Trainer(NamedTuple):
     train_step: Callable[[TrainState, jax.Array], tuple[TrainState, EpochMetrics]]  # (state, eta[N])
 
 
+def outcome_eta(eta: jax.Array, stages: jax.Array, successes: jax.Array, rate: float,
+                bounds: tuple[float, float]) -> jax.Array:
+    """One epoch's move of the "outcomes" rule of `--eta auto`: eta float32[N] -> float32[N].
+
+    stages float32[N]: how many of the epoch's ended training episodes reached each stage; successes
+    float32[]: how many succeeded. Of the episodes that entered stage n, those that failed in it push η_n
+    up by `rate` each (the agent's own subtask is the bottleneck: weigh its own critic more) and those
+    that failed in stage n + 1 push it down (it hands over where its successor fails: weigh the next
+    critic more), as a fraction of the episodes that entered stage n; clipped to `bounds`. An agent
+    whose stage no episode entered keeps its η. (The last agent's entry moves too but is never used.)
+    """
+    reached = jnp.concatenate([stages, successes[None]])  # [N + 1]; "stage N" is success
+    entered, failed = reached[:-1], reached[:-1] - reached[1:]
+    failed_next = jnp.concatenate([failed[1:], jnp.zeros((1,), failed.dtype)])
+    moved = eta + rate * (failed - failed_next) / jnp.maximum(entered, 1.0)
+    return jnp.clip(jnp.where(entered > 0, moved, eta), *bounds)
+
+
 def make_train(config: Config, env: Env) -> Trainer:
     """Pure `init(seed)` and `train_step(state, eta)` for one run of `config` on `env`."""
     if env.num_stages != config.num_stages:
@@ -70,6 +89,7 @@ def make_train(config: Config, env: Env) -> Trainer:
     learner = make_learner(config, nets, action_size)
     num_channels = 1 if config.num_agents == 1 else config.num_stages
     capacity = config.buffer_size
+    outcomes = config.eta_auto_rule == "outcomes"
 
     def init(seed: jax.Array) -> TrainState:
         key = jax.random.PRNGKey(seed)
@@ -79,10 +99,13 @@ def make_train(config: Config, env: Env) -> Trainer:
         buffer = replay.init_buffer(replay.zero_transition(obs_size, action_size, num_channels),
                                     config.num_agents, capacity)
         env_state = jax.vmap(env.reset)(jax.random.split(k_env, config.num_envs))
+        eta_auto = jnp.full((config.num_agents,), sum(config.eta_auto_range) / 2, jnp.float32)
         return TrainState(agents=agents, buffer=buffer, env_state=env_state, key=key,
-                          env_steps=jnp.int32(0), epoch=jnp.int32(0))
+                          env_steps=jnp.int32(0), epoch=jnp.int32(0), eta_auto=eta_auto)
 
     def train_step(state: TrainState, eta: jax.Array) -> tuple[TrainState, EpochMetrics]:
+        if outcomes:  # "auto" members train the epoch at the rule's ratios; the learner sees numbers
+            eta = jnp.where(jnp.isnan(eta), state.eta_auto, eta)
         key, k_collect, k_train, k_eval = jax.random.split(state.key, 4)
         k_train, k_pulls = jax.random.split(k_train)
         cycles = config.train_cycles_per_epoch
@@ -114,8 +137,10 @@ def make_train(config: Config, env: Env) -> Trainer:
                                train_success=per_episode(stats.successes, stats.episodes),
                                train_stage_fraction=per_episode(stats.stages, stats.episodes),
                                buffer_size=buffer.size, pull_own=pull_own, pull_next=pull_next)
+        eta_auto = (outcome_eta(state.eta_auto, stats.stages, stats.successes, config.eta_auto_rate,
+                                config.eta_auto_range) if outcomes else state.eta_auto)
         new_state = TrainState(agents=agents, buffer=buffer, env_state=env_state, key=key,
-                               env_steps=env_steps, epoch=state.epoch + 1)
+                               env_steps=env_steps, epoch=state.epoch + 1, eta_auto=eta_auto)
         return new_state, metrics
 
     return Trainer(networks=nets, init=init, train_step=train_step)

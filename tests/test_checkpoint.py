@@ -14,8 +14,10 @@ from ccp_jax.envs import make_env
 from ccp_jax.train import main, run
 from ccp_jax.trainer import make_grid_train
 
-# 3 epochs, 2 members; the running normaliser and an "auto" ratio put their state into the checkpoint too.
-CONFIG = make_config("tiny", etas=((0.1,), ("auto",)), seeds=(0,), normaliser="ema", total_steps=600)
+# 3 epochs, 2 members; the running normaliser and an "auto" ratio (its outcome rule's, which moves every
+# epoch) put their state into the checkpoint too.
+CONFIG = make_config("tiny", etas=((0.1,), ("auto",)), seeds=(0,), normaliser="ema", total_steps=600,
+                     eta_auto_rule="outcomes")
 
 
 def _rows(run_dir):
@@ -154,3 +156,14 @@ def test_load_policy_acts_like_the_trained_actor(uninterrupted):
     assert policy(obs[0], stage[0]).shape == (2,)
     with pytest.raises(ValueError, match="^member:"):
         load_policy(uninterrupted, member=2)
+
+
+def test_a_checkpoint_of_another_state_layout_is_refused_by_name(tmp_path):
+    """A state with a leaf the checkpoint lacks (saved by an older version) gets a clear error, not a misread."""
+    saved = Toy(Agents({"w": jnp.ones((2, 3))}), jnp.array([5, 6]), jnp.zeros((2, 0)))
+    mngr = checkpoint.manager(tmp_path)
+    checkpoint.save(mngr, 1, saved)
+    grown = (saved, jnp.zeros((2, 4)))
+    with pytest.raises(checkpoint.CheckpointError, match="holds 2 arrays where this version's state has 3"):
+        checkpoint.restore(mngr, jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), grown))
+    mngr.close()

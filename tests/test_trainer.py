@@ -315,3 +315,57 @@ def test_env_is_traced_once_per_call_kind_on_one_device():
     state = trainer.abstract_state(seeds)
     trainer._step.trace(state, trainer._pad(eta))  # the epoch's program, traced but not compiled
     assert traced == {"reset": 1, "step": 1}
+
+
+def test_outcome_rule_moves_eta_against_hand_values():
+    from ccp_jax.trainer import outcome_eta
+
+    def move(eta, stages, successes, rate=0.1, bounds=(0.05, 0.95)):
+        return np.asarray(outcome_eta(jnp.asarray(eta, jnp.float32), jnp.asarray(stages, jnp.float32),
+                                      jnp.float32(successes), rate, bounds))
+
+    # 10 ended episodes: 6 reached stage 1, 2 stage 2, 1 succeeded. Failed in stage 0 / 1 / 2: 4 / 4 / 1.
+    np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1),
+                               [0.5, 0.5 + 0.1 * (4 - 1) / 6, 0.5 + 0.1 * 1 / 2], rtol=1e-6)
+    # Every episode hands over into a stage it then fails in (the maze's pocket): the first ratio falls.
+    np.testing.assert_allclose(move([0.5, 1.0], [5, 5], 0), [0.4, 0.95], rtol=1e-6)
+    # No episode left stage 0: its ratio rises (clipped), and the agents no episode reached keep theirs.
+    np.testing.assert_allclose(move([0.9, 0.3, 0.7], [3, 0, 0], 0), [0.95, 0.3, 0.7], rtol=1e-6)
+    np.testing.assert_allclose(move([0.2, 1.0], [0, 0], 0), [0.2, 0.95], rtol=1e-6)  # nothing ended
+    np.testing.assert_allclose(move([0.5, 0.5], [4, 4], 4), [0.5, 0.5], rtol=1e-6)  # all succeed: nothing moves
+
+
+def test_outcome_rule_trains_auto_members_at_its_ratios_epoch_by_epoch():
+    """An "auto" member trains epoch k + 1 at `outcome_eta` of epoch k's training episodes; a numeric
+    member beside it keeps its ratio."""
+    from ccp_jax.trainer import outcome_eta
+
+    config = make_config("tiny", rooms=2, etas=(("auto",), (0.3,)), seeds=(0,), total_steps=600,
+                         eta_auto_rule="outcomes", eta_auto_rate=0.2)
+    state, history = _train(config, make_grid_train(config, make_env(config)), 3)
+    used = np.array([m.train.eta_used[:, 0] for m in history])  # [epochs, members]
+    np.testing.assert_allclose(used[:, 1], 0.3, rtol=1e-6)
+    expected = [0.5]
+    for m in history:
+        stages = m.train_stage_fraction[0] * m.train_episodes[0]
+        expected.append(float(outcome_eta(jnp.full((2,), expected[-1]), jnp.asarray(stages),
+                                          jnp.asarray(m.train_success[0] * m.train_episodes[0]), 0.2,
+                                          config.eta_auto_range)[0]))
+    np.testing.assert_allclose(used[:, 0], expected[:3], rtol=1e-5)
+    np.testing.assert_allclose(state.eta_auto[0, 0], expected[3], rtol=1e-5)
+    assert len(set(np.round(expected, 4))) > 1, "the tiny maze's episodes should move the ratio"
+
+
+def test_outcome_rule_fields_are_validated_and_reach_the_config_from_the_cli():
+    import tyro
+
+    from ccp_jax.train import Args, config_from_args
+
+    config = config_from_args(tyro.cli(Args, args=["--preset", "tiny", "--eta", "auto", "--eta-auto-rule", "outcomes",
+                                                   "--eta-auto-rate", "0.1"]))
+    assert (config.eta_auto_rule, config.eta_auto_rate) == ("outcomes", 0.1)
+    assert make_config("tiny").eta_auto_rule == "ranges"
+    for field, value in (("eta_auto_rule", "returns"), ("eta_auto_rate", 0.0), ("eta_auto_rate", 1.5),
+                         ("eta_auto_rate", float("nan"))):
+        with pytest.raises(ConfigError, match=f"^{field}:"):
+            make_config("tiny", **{field: value})
