@@ -130,6 +130,8 @@ class Config:
     # stage n + 1) / episodes entering stage n, from the middle of `eta_auto_range`, within it.
     eta_auto_rule: EtaAutoRule = "ranges"
     eta_auto_rate: float = 0.05
+    # The rate for the own-failure (upward) term, if it differs; 0 lets the ratio only fall.
+    eta_auto_up_rate: float | None = None
     # TP (Transition Policies, Lee et al. 2019; ccp_jax/tp). Primitives: a finished --algo naive run.
     primitives: str | None = None
     primitives_member: int = 0
@@ -324,6 +326,9 @@ class Config:
             raise ConfigError("eta_auto_rule", f"unknown rule {self.eta_auto_rule!r}; choose one of {ETA_AUTO_RULES}")
         if not (math.isfinite(self.eta_auto_rate) and 0.0 < self.eta_auto_rate <= 1.0):
             raise ConfigError("eta_auto_rate", f"must be in (0, 1], got {self.eta_auto_rate}")
+        if self.eta_auto_up_rate is not None and not (math.isfinite(self.eta_auto_up_rate)
+                                                      and 0.0 <= self.eta_auto_up_rate <= 1.0):
+            raise ConfigError("eta_auto_up_rate", f"must be in [0, 1] (or None: eta_auto_rate), got {self.eta_auto_up_rate}")
         lo, hi = self.eta_auto_range
         if not 0.0 <= lo <= hi <= 1.0:
             raise ConfigError("eta_auto_range", f"must satisfy 0 <= low <= high <= 1, got {self.eta_auto_range}")

@@ -60,20 +60,21 @@ class Trainer(NamedTuple):
 
 
 def outcome_eta(eta: jax.Array, stages: jax.Array, successes: jax.Array, rate: float,
-                bounds: tuple[float, float]) -> jax.Array:
+                bounds: tuple[float, float], up_rate: float | None = None) -> jax.Array:
     """One epoch's move of the "outcomes" rule of `--eta auto`: eta float32[N] -> float32[N].
 
     stages float32[N]: how many of the epoch's ended training episodes reached each stage; successes
     float32[]: how many succeeded. Of the episodes that entered stage n, those that failed in it push η_n
-    up by `rate` each (the agent's own subtask is the bottleneck: weigh its own critic more) and those
-    that failed in stage n + 1 push it down (it hands over where its successor fails: weigh the next
-    critic more), as a fraction of the episodes that entered stage n; clipped to `bounds`. An agent
+    up by `up_rate` (default `rate`) each (the agent's own subtask is the bottleneck: weigh its own critic
+    more) and those that failed in stage n + 1 push it down by `rate` (it hands over where its successor
+    fails: weigh the next critic more), as a fraction of the episodes that entered stage n; clipped to `bounds`. An agent
     whose stage no episode entered keeps its η. (The last agent's entry moves too but is never used.)
     """
     reached = jnp.concatenate([stages, successes[None]])  # [N + 1]; "stage N" is success
     entered, failed = reached[:-1], reached[:-1] - reached[1:]
     failed_next = jnp.concatenate([failed[1:], jnp.zeros((1,), failed.dtype)])
-    moved = eta + rate * (failed - failed_next) / jnp.maximum(entered, 1.0)
+    up_rate = rate if up_rate is None else up_rate
+    moved = eta + (up_rate * failed - rate * failed_next) / jnp.maximum(entered, 1.0)
     return jnp.clip(jnp.where(entered > 0, moved, eta), *bounds)
 
 
@@ -138,7 +139,7 @@ def make_train(config: Config, env: Env) -> Trainer:
                                train_stage_fraction=per_episode(stats.stages, stats.episodes),
                                buffer_size=buffer.size, pull_own=pull_own, pull_next=pull_next)
         eta_auto = (outcome_eta(state.eta_auto, stats.stages, stats.successes, config.eta_auto_rate,
-                                config.eta_auto_range) if outcomes else state.eta_auto)
+                                config.eta_auto_range, config.eta_auto_up_rate) if outcomes else state.eta_auto)
         new_state = TrainState(agents=agents, buffer=buffer, env_state=env_state, key=key,
                                env_steps=env_steps, epoch=state.epoch + 1, eta_auto=eta_auto)
         return new_state, metrics

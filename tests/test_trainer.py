@@ -333,6 +333,10 @@ def test_outcome_rule_moves_eta_against_hand_values():
     np.testing.assert_allclose(move([0.9, 0.3, 0.7], [3, 0, 0], 0), [0.95, 0.3, 0.7], rtol=1e-6)
     np.testing.assert_allclose(move([0.2, 1.0], [0, 0], 0), [0.2, 0.95], rtol=1e-6)  # nothing ended
     np.testing.assert_allclose(move([0.5, 0.5], [4, 4], 4), [0.5, 0.5], rtol=1e-6)  # all succeed: nothing moves
+    # Own failures weighed by up_rate: 0 lets the ratios only fall.
+    np.testing.assert_allclose(outcome_eta(jnp.full((3,), 0.5), jnp.asarray([10.0, 6, 2]), jnp.float32(1), 0.1,
+                                           (0.05, 0.95), up_rate=0.0), [0.5 - 0.1 * 4 / 10, 0.5 - 0.1 * 1 / 6, 0.5],
+                               rtol=1e-6)
 
 
 def test_outcome_rule_trains_auto_members_at_its_ratios_epoch_by_epoch():
@@ -362,10 +366,10 @@ def test_outcome_rule_fields_are_validated_and_reach_the_config_from_the_cli():
     from ccp_jax.train import Args, config_from_args
 
     config = config_from_args(tyro.cli(Args, args=["--preset", "tiny", "--eta", "auto", "--eta-auto-rule", "outcomes",
-                                                   "--eta-auto-rate", "0.1"]))
-    assert (config.eta_auto_rule, config.eta_auto_rate) == ("outcomes", 0.1)
+                                                   "--eta-auto-rate", "0.1", "--eta-auto-up-rate", "0"]))
+    assert (config.eta_auto_rule, config.eta_auto_rate, config.eta_auto_up_rate) == ("outcomes", 0.1, 0.0)
     assert make_config("tiny").eta_auto_rule == "ranges"
     for field, value in (("eta_auto_rule", "returns"), ("eta_auto_rate", 0.0), ("eta_auto_rate", 1.5),
-                         ("eta_auto_rate", float("nan"))):
+                         ("eta_auto_rate", float("nan")), ("eta_auto_up_rate", -0.1)):
         with pytest.raises(ConfigError, match=f"^{field}:"):
             make_config("tiny", **{field: value})
