@@ -597,3 +597,12 @@ def test_vs_rejax_reports_the_median_of_paired_ratios_per_grid():
     assert "| 4 | rejax SAC | 3.00 | 1.00 (1.00–1.00) | 0.50 | 18.0 |" in text
     assert "ours, members one at a time" not in text  # only the programs that ran
     assert "5000 env steps and 1000 updates per seed" in text
+
+
+def test_auto_variants_figure_pools_six_seeds_per_line_from_the_committed_runs():
+    import auto_variants
+
+    for maze, variants in auto_variants.VARIANTS.items():
+        groups = auto_variants.panel(maze)
+        assert [legend for _, legend, _ in groups] == [legend for legend, _, _ in variants], maze
+        assert all(len(series) == 6 for series in groups.values()), maze
