@@ -126,11 +126,11 @@ class Config:
     eta_auto_next_weight: float = 1.0
     # What "auto" follows: "ranges", the appendix's η* from the critics' running ranges (weighted by κ
     # above), or "outcomes", a controller on where the training episodes fail (`trainer.outcome_eta`):
-    # each epoch η_n moves by `eta_auto_rate` × (episodes failing in stage n − episodes failing in
-    # stage n + 1) / episodes entering stage n, from the middle of `eta_auto_range`, within it.
+    # each epoch η_n moves by (`eta_auto_up_rate` × episodes failing in stage n − `eta_auto_rate` ×
+    # episodes failing in stage n + 1) / episodes entering stage n, from the middle of `eta_auto_range`, within it.
     eta_auto_rule: EtaAutoRule = "ranges"
     eta_auto_rate: float = 0.05
-    # The rate for the own-failure (upward) term, if it differs; 0 lets the ratio only fall.
+    # None: the same as `eta_auto_rate`; 0 lets the ratio only fall.
     eta_auto_up_rate: float | None = None
     # TP (Transition Policies, Lee et al. 2019; ccp_jax/tp). Primitives: a finished --algo naive run.
     primitives: str | None = None

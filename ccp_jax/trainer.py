@@ -65,10 +65,11 @@ def outcome_eta(eta: jax.Array, stages: jax.Array, successes: jax.Array, rate: f
 
     stages float32[N]: how many of the epoch's ended training episodes reached each stage; successes
     float32[]: how many succeeded. Of the episodes that entered stage n, those that failed in it push η_n
-    up by `up_rate` (default `rate`) each (the agent's own subtask is the bottleneck: weigh its own critic
-    more) and those that failed in stage n + 1 push it down by `rate` (it hands over where its successor
-    fails: weigh the next critic more), as a fraction of the episodes that entered stage n; clipped to `bounds`. An agent
-    whose stage no episode entered keeps its η. (The last agent's entry moves too but is never used.)
+    up by `up_rate` (default `rate`) each (the agent's own subtask is the bottleneck: weigh its own
+    critic more) and those that failed in stage n + 1 push it down by `rate` (it hands over where its
+    successor fails: weigh the next critic more), as fractions of the episodes that entered stage n;
+    clipped to `bounds`. An agent whose stage no episode entered keeps its η. (The last agent's entry
+    moves too but is never used.)
     """
     reached = jnp.concatenate([stages, successes[None]])  # [N + 1]; "stage N" is success
     entered, failed = reached[:-1], reached[:-1] - reached[1:]
