@@ -144,6 +144,8 @@ class SameWork:
     """Env steps before the first update (ours: uniform-random actions; the other trainer: its prefill)."""
     eval_episodes: int = 10
     episode_length: int = 1000
+    roof: bool = True
+    """Also measure the jnp.dot roof at the widest layer, for context."""
 
 
 def updates_per_epoch(args: SameWork) -> int:
@@ -154,7 +156,7 @@ def updates_per_epoch(args: SameWork) -> int:
 
 def our_sac(args: SameWork, seeds: Sequence[int], evaluate: bool, members_at_once: int | None = None) -> TimedGrid:
     """Our grid trainer, one agent (`algo="sac"`), on `args`' work: one member per seed (`members_at_once`:
-    as `make_grid_train`'s, default one at a time on a CPU)."""
+    as `make_grid_train`'s, default `trainer.default_members_at_once`)."""
     config = make_config(
         "paper", rooms=args.rooms, algo="sac", hidden=args.hidden, batch_size=args.batch,
         num_envs=args.num_envs, steps_per_epoch=args.epoch_steps, train_loops_per_epoch=updates_per_epoch(args),

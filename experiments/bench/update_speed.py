@@ -24,7 +24,7 @@ from ccp_jax import buffer as replay
 from ccp_jax.buffer import ReplayBuffer
 from ccp_jax.config import make_config
 from ccp_jax.learner import init_agents, make_learner, make_networks, train_loops
-from timed import emitters_on_everywhere  # this folder: the script's own
+from timed import SameWork, emitters_on_everywhere  # this folder: the script's own
 
 
 @dataclasses.dataclass
@@ -65,11 +65,14 @@ def matmul_roof(batch: int, width: int, reps: int) -> float:
     return 2 * batch * width * width * chain / timed(f, x, w, reps=reps)
 
 
-def print_roof(batch: int, width: int) -> float:
-    """Measures and prints `matmul_roof` at [batch, width] @ [width, width]; returns GFLOP/s."""
-    roof = matmul_roof(batch, width, reps=3) / 1e9
-    print(f"jnp.dot roof at [{batch}, {width}] @ [{width}, {width}]: {roof:.0f} GFLOP/s")
-    return roof
+def add_roof(result: dict, work: SameWork) -> dict:
+    """`result` with "roof_gflops", `matmul_roof` at `work`'s batch and widest layer, measured and printed
+    (when `work.roof`): the context a SAC comparison reports beside its timings."""
+    if work.roof:
+        batch, width = work.batch, max(work.hidden)
+        result["roof_gflops"] = matmul_roof(batch, width, reps=3) / 1e9
+        print(f"jnp.dot roof at [{batch}, {width}] @ [{width}, {width}]: {result['roof_gflops']:.0f} GFLOP/s")
+    return result
 
 
 def full_of_noise(buffer: ReplayBuffer, key: jax.Array) -> ReplayBuffer:

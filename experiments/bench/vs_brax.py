@@ -49,7 +49,7 @@ from envs_mjx.maze import Maze
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from timed import SameWork, emitters_on_everywhere, our_sac, updates_per_epoch  # noqa: E402
-from update_speed import print_roof  # noqa: E402
+from update_speed import add_roof  # noqa: E402
 
 
 @dataclasses.dataclass
@@ -60,8 +60,6 @@ class Args(SameWork):
     """Timed epochs per brax training (plus its first epoch, which compiles)."""
     rounds: int = 2
     """brax trainings; after each brax epoch one epoch of each of ours runs, so the pairs share the load."""
-    roof: bool = True
-    """Also measure the jnp.dot roof at the widest layer, for context."""
 
 
 class BraxMaze(Env):
@@ -201,11 +199,8 @@ def main(args: Args) -> dict:
           f"(throughput ratio; > 1: ours faster).")
     print(f"Same work (evaluation excluded on both sides): ours/brax = {paired['ours_no_eval']:.2f}x; "
           f"ours with its per-epoch evaluation of {args.eval_episodes} episodes: {paired['ours']:.2f}x.")
-    result = {"args": dataclasses.asdict(args), "rows": rows, "ratio": paired["ours_no_eval"],
-              "ratio_with_eval": paired["ours"]}
-    if args.roof:
-        result["roof_gflops"] = print_roof(args.batch, max(args.hidden))
-    return result
+    return add_roof({"args": dataclasses.asdict(args), "rows": rows, "ratio": paired["ours_no_eval"],
+                     "ratio_with_eval": paired["ours"]}, args)
 
 
 if __name__ == "__main__":

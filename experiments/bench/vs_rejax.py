@@ -58,7 +58,7 @@ from envs_mjx.maze import Maze
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from timed import SameWork, TimedEpochs, avals, emitters_on_everywhere, our_sac, updates_per_epoch  # noqa: E402
-from update_speed import print_roof  # noqa: E402
+from update_speed import add_roof  # noqa: E402
 
 
 @dataclasses.dataclass
@@ -71,8 +71,6 @@ class Args(SameWork):
     """Also time rejax with its sampler replaced by ours (uniform, with replacement), evaluation stubbed."""
     ours_one_at_a_time: bool = True
     """For G > 1, also time ours with the members one at a time (`--members-at-once 1`), evaluation stubbed."""
-    roof: bool = True
-    """Also measure the jnp.dot roof at the widest layer, for context."""
 
 
 def uniform_sample(buffer, num: int, rng: jax.Array):
@@ -195,10 +193,7 @@ def main(args: Args) -> dict:
         del runs
     text = report(rows, args)
     print("\n" + text)
-    result = {"args": dataclasses.asdict(args), "rows": rows}
-    if args.roof:
-        result["roof_gflops"] = print_roof(args.batch, max(args.hidden))
-    return result
+    return add_roof({"args": dataclasses.asdict(args), "rows": rows}, args)
 
 
 if __name__ == "__main__":
