@@ -320,9 +320,9 @@ def test_env_is_traced_once_per_call_kind_on_one_device():
 def test_outcome_rule_moves_eta_against_hand_values():
     from ccp_jax.trainer import outcome_eta
 
-    def move(eta, stages, successes, rate=0.1, bounds=(0.05, 0.95)):
+    def move(eta, stages, successes, rate=0.1, bounds=(0.05, 0.95), up_rate=None):
         return np.asarray(outcome_eta(jnp.asarray(eta, jnp.float32), jnp.asarray(stages, jnp.float32),
-                                      jnp.float32(successes), rate, bounds))
+                                      jnp.float32(successes), rate, bounds, up_rate))
 
     # 10 ended episodes: 6 reached stage 1, 2 stage 2, 1 succeeded. Failed in stage 0 / 1 / 2: 4 / 4 / 1.
     np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1),
@@ -334,9 +334,8 @@ def test_outcome_rule_moves_eta_against_hand_values():
     np.testing.assert_allclose(move([0.2, 1.0], [0, 0], 0), [0.2, 0.95], rtol=1e-6)  # nothing ended
     np.testing.assert_allclose(move([0.5, 0.5], [4, 4], 4), [0.5, 0.5], rtol=1e-6)  # all succeed: nothing moves
     # Own failures weighed by up_rate: 0 lets the ratios only fall.
-    np.testing.assert_allclose(outcome_eta(jnp.full((3,), 0.5), jnp.asarray([10.0, 6, 2]), jnp.float32(1), 0.1,
-                                           (0.05, 0.95), up_rate=0.0), [0.5 - 0.1 * 4 / 10, 0.5 - 0.1 * 1 / 6, 0.5],
-                               rtol=1e-6)
+    np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1, up_rate=0.0),
+                               [0.5 - 0.1 * 4 / 10, 0.5 - 0.1 * 1 / 6, 0.5], rtol=1e-6)
 
 
 def test_outcome_rule_trains_auto_members_at_its_ratios_epoch_by_epoch():
