@@ -59,11 +59,13 @@ def domain_groups(out: Path, domain: str, algos: tuple[str, ...], with_auto: boo
     return groups
 
 
-def draw_panels(drawn: dict[str, dict], path: Path) -> Path:
-    """One success panel per domain ({domain: curve groups}, in that order), side by side, saved to `path`."""
+def draw_panels(drawn: dict[str, dict], path: Path, metrics: Optional[dict[str, str]] = None) -> Path:
+    """One panel per domain ({domain: curve groups}, in that order), side by side, saved to `path`; each
+    draws its domain's metric in `metrics` (default: success)."""
     fig = plot.new_figure(4.2 * len(drawn), 3.4)
     for i, (domain, groups) in enumerate(drawn.items()):
-        plot.curves(groups, ax=fig.add_subplot(1, len(drawn), i + 1), title=TITLES[domain])
+        plot.curves(groups, (metrics or {}).get(domain, "success_rate"),
+                    ax=fig.add_subplot(1, len(drawn), i + 1), title=TITLES[domain])
     fig.savefig(path)
     return path
 

@@ -599,10 +599,11 @@ def test_vs_rejax_reports_the_median_of_paired_ratios_per_grid():
     assert "5000 env steps and 1000 updates per seed" in text
 
 
-def test_auto_variants_figure_pools_six_seeds_per_line_from_the_committed_runs():
+def test_auto_variants_figure_pools_each_domains_seeds_per_line_from_the_committed_runs():
     import auto_variants
 
-    for maze, variants in auto_variants.VARIANTS.items():
-        groups = auto_variants.panel(maze)
-        assert [legend for _, legend, _ in groups] == [legend for legend, _, _ in variants], maze
-        assert all(len(series) == 6 for series in groups.values()), maze
+    for domain, (_, _, variants) in auto_variants.PANELS.items():
+        groups = auto_variants.panel(domain)
+        assert [legend for _, legend, _ in groups] == [legend for legend, _, _ in variants], domain
+        seeds = 3 if domain == "peg" else 6
+        assert all(len(series) == seeds for series in groups.values()), domain
