@@ -142,11 +142,13 @@ def _metric_label(metric: str) -> str:
 
 
 def curves(groups: dict[Group, list[Series]], metric: str = "success_rate",
-           ax: Optional[Axes] = None, title: Optional[str] = None) -> Figure:
+           ax: Optional[Axes] = None, title: Optional[str] = None,
+           colors: Optional[dict[str, str]] = None) -> Figure:
     """Mean ± std over members of each group vs env steps, one line per group (from `load_curves`).
 
-    Draws into `ax` if given (e.g. a subplot of an experiments figure), else a new figure.
-    Returns the figure drawn into.
+    Draws into `ax` if given (e.g. a subplot of an experiments figure), else a new figure; `colors` maps a
+    group's label (`group_label`) to its colour (default: matplotlib's cycle), so that panels side by side
+    can draw a variant alike (`line_colors`). Returns the figure drawn into.
     """
     if ax is None:
         ax = new_figure().add_subplot()
@@ -154,7 +156,8 @@ def curves(groups: dict[Group, list[Series]], metric: str = "success_rate",
     fraction = metric == "success_rate" or "stage_fraction" in metric  # fractions of episodes
     for group in sorted(groups, key=group_order):
         steps, mean, std, count = mean_std(groups[group])
-        line, = ax.plot(steps, mean, label=f"{group_label(group, show_task)} (n={count.max(initial=0)})")
+        label = group_label(group, show_task)
+        line, = ax.plot(steps, mean, color=(colors or {}).get(label), label=f"{label} (n={count.max(initial=0)})")
         low, high = (np.clip(mean - std, 0, 1), np.clip(mean + std, 0, 1)) if fraction else (mean - std, mean + std)
         ax.fill_between(steps, low, high, color=line.get_color(), alpha=0.2, linewidth=0)
     ax.set_xlabel("environment steps")
@@ -167,6 +170,13 @@ def curves(groups: dict[Group, list[Series]], metric: str = "success_rate",
     if title:
         ax.set_title(title)
     return ax.figure
+
+
+def line_colors(panels: Sequence[dict[Group, list[Series]]]) -> dict[str, str]:
+    """One colour of matplotlib's cycle per group label over several panels' groups, in the order the
+    panels draw them, for `curves(colors=...)`."""
+    labels = dict.fromkeys(group_label(g) for groups in panels for g in sorted(groups, key=group_order))
+    return {label: f"C{i % 10}" for i, label in enumerate(labels)}
 
 
 def ratio_cells(run_dirs: Sequence[str | Path], key: str = "final_success") -> dict[tuple[float, float], list[float]]:

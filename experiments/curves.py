@@ -63,9 +63,10 @@ def draw_panels(drawn: dict[str, dict], path: Path, metrics: Optional[dict[str, 
     """One panel per domain ({domain: curve groups}, in that order), side by side, saved to `path`; each
     draws its domain's metric in `metrics` (default: success)."""
     fig = plot.new_figure(4.2 * len(drawn), 3.4)
+    colors = plot.line_colors(drawn.values())  # a variant in several panels is drawn alike in each
     for i, (domain, groups) in enumerate(drawn.items()):
         plot.curves(groups, (metrics or {}).get(domain, "success_rate"),
-                    ax=fig.add_subplot(1, len(drawn), i + 1), title=TITLES[domain])
+                    ax=fig.add_subplot(1, len(drawn), i + 1), title=TITLES[domain], colors=colors)
     fig.savefig(path)
     return path
 

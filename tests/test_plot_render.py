@@ -70,6 +70,21 @@ def test_stage_fraction_plot_is_labelled_by_stage_and_spans_fractions(run_dir):
     assert plot.curves(groups, "q_loss/1").axes[0].get_ylabel() == "q loss/1"
 
 
+def test_panels_side_by_side_draw_a_variant_in_one_colour():
+    steps = np.array([10, 20])
+    one = [(steps, np.zeros(2))]
+    left = {("maze-2", "sac", (1.0, 1.0)): one, ("maze-2", "csac", (0.1, 1.0)): one}
+    right = {("peg", "naive", (1.0, 1.0)): one, ("peg", "sac", (1.0, 1.0)): one}  # sac second here, first left
+    colors = plot.line_colors([left, right])
+    assert colors == {"csac η=0.1": "C0", "sac": "C1", "naive": "C2"}
+    fig = plot.new_figure()
+    drawn = [plot.curves(groups, ax=fig.add_subplot(1, 2, i + 1), colors=colors).axes[i] for i, groups in
+             enumerate([left, right])]
+    by_label = [{line.get_label().split(" (n=")[0]: line.get_color() for line in ax.get_lines()} for ax in drawn]
+    assert by_label[0]["sac"] == by_label[1]["sac"] == "C1"
+    assert by_label[1]["naive"] == "C2" and by_label[0]["csac η=0.1"] == "C0"
+
+
 def test_plot_labels_keep_runs_of_one_algo_apart(run_dir, tmp_path, monkeypatch):
     drawn = {}
     real = plot.curves
