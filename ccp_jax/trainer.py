@@ -36,7 +36,8 @@ class TrainState(struct.PyTreeNode):
     key: jax.Array
     env_steps: jax.Array  # int32[]
     epoch: jax.Array  # int32[]
-    eta_auto: jax.Array  # float32[N]: the "outcomes" rule's ratios for "auto" members (`outcome_eta`)
+    eta_auto: jax.Array  # float32[N]: the "outcomes" / "gated" rules' ratios for "auto" members (`outcome_eta`)
+    successor_succeeded: jax.Array  # bool[N]: a training episode has succeeded in stage n + 1 (the "gated" rule)
 
 
 class EpochMetrics(NamedTuple):
@@ -59,8 +60,21 @@ class Trainer(NamedTuple):
     train_step: Callable[[TrainState, jax.Array], tuple[TrainState, EpochMetrics]]  # (state, eta[N])
 
 
+def _reached(stages: jax.Array, successes: jax.Array) -> jax.Array:
+    """float32[N + 1]: episodes that reached each stage, then those that succeeded ("stage N")."""
+    return jnp.concatenate([stages, successes[None]])
+
+
+def successor_succeeded(stages: jax.Array, successes: jax.Array) -> jax.Array:
+    """bool[N]: whether any of the epoch's episodes succeeded in stage n + 1 (reached stage n + 2, or the
+    goal); False for the last agent, which has no successor. Arguments as `outcome_eta`'s."""
+    beyond_next = _reached(stages, successes)[2:]
+    return jnp.concatenate([beyond_next > 0, jnp.zeros((1,), bool)])
+
+
 def outcome_eta(eta: jax.Array, stages: jax.Array, successes: jax.Array, rate: float,
-                bounds: tuple[float, float], up_rate: float | None = None) -> jax.Array:
+                bounds: tuple[float, float], up_rate: float | None = None,
+                gate: jax.Array | None = None) -> jax.Array:
     """One epoch's move of the "outcomes" rule of `--eta auto`: eta float32[N] -> float32[N].
 
     stages float32[N]: how many of the epoch's ended training episodes reached each stage; successes
@@ -70,11 +84,18 @@ def outcome_eta(eta: jax.Array, stages: jax.Array, successes: jax.Array, rate: f
     successor fails: weigh the next critic more), as fractions of the episodes that entered stage n;
     clipped to `bounds`. An agent whose stage no episode entered keeps its η. (The last agent's entry
     moves too but is never used.)
+
+    The "gated" rule passes `gate` bool[N] (`successor_succeeded`, accumulated over epochs): where it is
+    False only the upward term applies, where True only the downward one. Until its successor has
+    succeeded once, failures after a handover say that stage n + 1 is not learnt yet, not that the
+    handover is bad (peg's insertions at the CPU budget).
     """
-    reached = jnp.concatenate([stages, successes[None]])  # [N + 1]; "stage N" is success
+    reached = _reached(stages, successes)
     entered, failed = reached[:-1], reached[:-1] - reached[1:]
     failed_next = jnp.concatenate([failed[1:], jnp.zeros((1,), failed.dtype)])
     up_rate = rate if up_rate is None else up_rate
+    if gate is not None:
+        failed, failed_next = jnp.where(gate, 0.0, failed), jnp.where(gate, failed_next, 0.0)
     moved = eta + (up_rate * failed - rate * failed_next) / jnp.maximum(entered, 1.0)
     return jnp.clip(jnp.where(entered > 0, moved, eta), *bounds)
 
@@ -91,7 +112,8 @@ def make_train(config: Config, env: Env) -> Trainer:
     learner = make_learner(config, nets, action_size)
     num_channels = 1 if config.num_agents == 1 else config.num_stages
     capacity = config.buffer_size
-    outcomes = config.eta_auto_rule == "outcomes"
+    outcomes = config.eta_auto_rule in ("outcomes", "gated")
+    gated = config.eta_auto_rule == "gated"
 
     def init(seed: jax.Array) -> TrainState:
         key = jax.random.PRNGKey(seed)
@@ -103,7 +125,8 @@ def make_train(config: Config, env: Env) -> Trainer:
         env_state = jax.vmap(env.reset)(jax.random.split(k_env, config.num_envs))
         eta_auto = jnp.full((config.num_agents,), sum(config.eta_auto_range) / 2, jnp.float32)
         return TrainState(agents=agents, buffer=buffer, env_state=env_state, key=key,
-                          env_steps=jnp.int32(0), epoch=jnp.int32(0), eta_auto=eta_auto)
+                          env_steps=jnp.int32(0), epoch=jnp.int32(0), eta_auto=eta_auto,
+                          successor_succeeded=jnp.zeros((config.num_agents,), bool))
 
     def train_step(state: TrainState, eta: jax.Array) -> tuple[TrainState, EpochMetrics]:
         if outcomes:  # "auto" members train the epoch at the rule's ratios; the learner sees numbers
@@ -139,10 +162,13 @@ def make_train(config: Config, env: Env) -> Trainer:
                                train_success=per_episode(stats.successes, stats.episodes),
                                train_stage_fraction=per_episode(stats.stages, stats.episodes),
                                buffer_size=buffer.size, pull_own=pull_own, pull_next=pull_next)
+        succeeded = state.successor_succeeded | successor_succeeded(stats.stages, stats.successes)
         eta_auto = (outcome_eta(state.eta_auto, stats.stages, stats.successes, config.eta_auto_rate,
-                                config.eta_auto_range, config.eta_auto_up_rate) if outcomes else state.eta_auto)
+                                config.eta_auto_range, config.eta_auto_up_rate, succeeded if gated else None)
+                    if outcomes else state.eta_auto)
         new_state = TrainState(agents=agents, buffer=buffer, env_state=env_state, key=key,
-                               env_steps=env_steps, epoch=state.epoch + 1, eta_auto=eta_auto)
+                               env_steps=env_steps, epoch=state.epoch + 1, eta_auto=eta_auto,
+                               successor_succeeded=succeeded)
         return new_state, metrics
 
     return Trainer(networks=nets, init=init, train_step=train_step)

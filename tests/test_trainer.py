@@ -320,9 +320,10 @@ def test_env_is_traced_once_per_call_kind_on_one_device():
 def test_outcome_rule_moves_eta_against_hand_values():
     from ccp_jax.trainer import outcome_eta
 
-    def move(eta, stages, successes, rate=0.1, bounds=(0.05, 0.95), up_rate=None):
+    def move(eta, stages, successes, rate=0.1, bounds=(0.05, 0.95), up_rate=None, gate=None):
         return np.asarray(outcome_eta(jnp.asarray(eta, jnp.float32), jnp.asarray(stages, jnp.float32),
-                                      jnp.float32(successes), rate, bounds, up_rate))
+                                      jnp.float32(successes), rate, bounds, up_rate,
+                                      None if gate is None else jnp.asarray(gate)))
 
     # 10 ended episodes: 6 reached stage 1, 2 stage 2, 1 succeeded. Failed in stage 0 / 1 / 2: 4 / 4 / 1.
     np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1),
@@ -336,26 +337,47 @@ def test_outcome_rule_moves_eta_against_hand_values():
     # Own failures weighed by up_rate: 0 lets the ratios only fall.
     np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1, up_rate=0.0),
                                [0.5 - 0.1 * 4 / 10, 0.5 - 0.1 * 1 / 6, 0.5], rtol=1e-6)
+    # "gated": before the successor's first success only the upward term, after it only the downward one.
+    np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1, gate=[False, True, False]),
+                               [0.5 + 0.1 * 4 / 10, 0.5 - 0.1 * 1 / 6, 0.5 + 0.1 * 1 / 2], rtol=1e-6)
+    # Peg at the CPU budget: grasps hand over, no insertion ever succeeds, so the grasping agent's ratio
+    # rises with its own failures instead of falling with the successor's.
+    np.testing.assert_allclose(move([0.5, 1.0], [5, 2], 0, gate=[False, False]), [0.56, 0.95], rtol=1e-6)
+    np.testing.assert_allclose(move([0.5, 1.0], [5, 2], 0), [0.5 + 0.1 * (3 - 2) / 5, 0.95], rtol=1e-6)
 
 
-def test_outcome_rule_trains_auto_members_at_its_ratios_epoch_by_epoch():
-    """An "auto" member trains epoch k + 1 at `outcome_eta` of epoch k's training episodes; a numeric
-    member beside it keeps its ratio."""
-    from ccp_jax.trainer import outcome_eta
+def test_successor_succeeded_looks_two_stages_ahead():
+    from ccp_jax.trainer import successor_succeeded
+
+    def check(stages, successes):
+        return np.asarray(successor_succeeded(jnp.asarray(stages, jnp.float32), jnp.float32(successes))).tolist()
+
+    assert check([10, 6, 2], 1) == [True, True, False]  # stage 2 reached (agent 0's), a success (agent 1's)
+    assert check([10, 6, 0], 0) == [False, False, False]
+    assert check([5, 2], 0) == [False, False] and check([5, 2], 1) == [True, False]
+
+
+@pytest.mark.parametrize("rule", ["outcomes", "gated"])
+def test_outcome_rule_trains_auto_members_at_its_ratios_epoch_by_epoch(rule):
+    """An "auto" member trains epoch k + 1 at `outcome_eta` of epoch k's training episodes (with "gated",
+    under the gate of every epoch's successes so far); a numeric member beside it keeps its ratio."""
+    from ccp_jax.trainer import outcome_eta, successor_succeeded
 
     config = make_config("tiny", rooms=2, etas=(("auto",), (0.3,)), seeds=(0,), total_steps=600,
-                         eta_auto_rule="outcomes", eta_auto_rate=0.2)
+                         eta_auto_rule=rule, eta_auto_rate=0.2)
     state, history = _train(config, make_grid_train(config, make_env(config)), 3)
     used = np.array([m.train.eta_used[:, 0] for m in history])  # [epochs, members]
     np.testing.assert_allclose(used[:, 1], 0.3, rtol=1e-6)
-    expected = [0.5]
+    expected, gate = [0.5], jnp.zeros((2,), bool)
     for m in history:
-        stages = m.train_stage_fraction[0] * m.train_episodes[0]
-        expected.append(float(outcome_eta(jnp.full((2,), expected[-1]), jnp.asarray(stages),
-                                          jnp.asarray(m.train_success[0] * m.train_episodes[0]), 0.2,
-                                          config.eta_auto_range)[0]))
+        stages = jnp.asarray(m.train_stage_fraction[0] * m.train_episodes[0])
+        successes = jnp.asarray(m.train_success[0] * m.train_episodes[0])
+        gate = gate | successor_succeeded(stages, successes)
+        expected.append(float(outcome_eta(jnp.full((2,), expected[-1]), stages, successes, 0.2,
+                                          config.eta_auto_range, gate=gate if rule == "gated" else None)[0]))
     np.testing.assert_allclose(used[:, 0], expected[:3], rtol=1e-5)
     np.testing.assert_allclose(state.eta_auto[0, 0], expected[3], rtol=1e-5)
+    np.testing.assert_array_equal(state.successor_succeeded[0], gate)
     assert len(set(np.round(expected, 4))) > 1, "the tiny maze's episodes should move the ratio"
 
 
