@@ -2,8 +2,8 @@
 
     python experiments/auto_variants.py    # -> results/table1_cpu_forward_slide/auto_variants.png
 
-Draws runs already trained (RESULTS.md, "`auto` weighing the next critic κ times" and "`auto`
-following where the episodes fail"); each line is the mean ± std over the seeds of its folders
+Draws runs already trained (RESULTS.md, "`auto` weighing the next critic κ times", "`auto`
+following where the episodes fail" and "`auto` on peg in hole"); each line is the mean ± std over the seeds of its folders
 (six per maze, three on peg). The maze panels draw success; the peg panel draws the grasp (the
 fraction of evaluations reaching stage 2), since no peg run inserts at this budget.
 """
@@ -22,12 +22,14 @@ PANELS = {
               [("best swept, η = 0.1", ["csac", "csac_fresh_seeds"], (0.1, 1.0)),
                ("auto, κ = 4", ["csac_auto_k4"], None),
                ("auto, outcomes", ["csac_auto_outcomes"], None),
-               ("auto, outcomes down-only", ["csac_auto_outcomes_down"], None)]),
+               ("auto, outcomes down-only", ["csac_auto_outcomes_down"], None),
+               ("auto, gated", ["csac_auto_gated"], None)]),
     "maze3": (ROOT / "maze3", "success_rate",
               [("best swept, η = 0.3", ["csac_fresh_seeds", "csac_ramp_and_0.3_seeds6to8"], (0.3, 0.3, 1.0)),
                ("auto, κ = 4", ["csac_auto_k4_seeds3to8"], None),
                ("auto, outcomes", ["csac_auto_outcomes_seeds3to8"], None),
-               ("auto, outcomes down-only", ["csac_auto_outcomes_down_seeds3to8"], None)]),
+               ("auto, outcomes down-only", ["csac_auto_outcomes_down_seeds3to8"], None),
+               ("auto, gated", ["csac_auto_gated_seeds3to8"], None)]),
     "maze4": (ROOT / "maze4", "success_rate",
               [("best swept, η = 0.5", ["csac_etas_0.5-0.7", "csac_fresh_seeds"], (0.5, 0.5, 0.5, 1.0)),
                ("ramp 0.1, 0.3, 0.5", ["csac_ramp", "csac_ramp_fresh_seeds"], (0.1, 0.3, 0.5, 1.0)),
@@ -38,7 +40,8 @@ PANELS = {
             [("best swept for the grasp, η = 0.9", ["csac_etas_0.9"], (0.9, 1.0)),
              ("auto (η*)", ["csac_etas_auto"], None),
              ("auto, κ = 4", ["csac_auto_k4"], None),
-             ("auto, outcomes down-only", ["csac_auto_outcomes_down"], None)]),
+             ("auto, outcomes down-only", ["csac_auto_outcomes_down"], None),
+             ("auto, gated", ["csac_auto_gated"], None)]),
 }
 
 
