@@ -26,8 +26,8 @@ NetworkInit = Literal["flax", "rlkit"]
 NETWORK_INITS = ("flax", "rlkit")
 CoopScale = Literal["unit", "own"]
 COOP_SCALES = ("unit", "own")
-EtaAutoRule = Literal["ranges", "outcomes", "gated"]
-ETA_AUTO_RULES = ("ranges", "outcomes", "gated")
+EtaAutoRule = Literal["ranges", "outcomes", "gated", "trusted"]
+ETA_AUTO_RULES = ("ranges", "outcomes", "gated", "trusted")
 # The maze kinematics of every run before config.json recorded them (sessions 1-27): reversing, stopping at walls.
 LEGACY_MAZE = {"maze_reverse": True, "maze_slide": False}
 AUTO = "auto"  # a ratio estimated during training (η*), see `Config.eta_auto_range`
@@ -129,7 +129,8 @@ class Config:
     # each epoch η_n moves by (`eta_auto_up_rate` × episodes failing in stage n − `eta_auto_rate` ×
     # episodes failing in stage n + 1) / episodes entering stage n, from the middle of `eta_auto_range`, within it;
     # or "gated", the same controller with only its upward term until an episode has succeeded in stage n + 1 and
-    # only its downward term from then on (a successor that never succeeded says nothing about the handover).
+    # only its downward term from then on (a successor that never succeeded says nothing about the handover);
+    # or "trusted", as "gated" but with both terms and η_n ≥ the range's middle until that first success.
     eta_auto_rule: EtaAutoRule = "ranges"
     eta_auto_rate: float = 0.05
     # None: the same as `eta_auto_rate`; 0 lets the ratio only fall.

@@ -107,11 +107,11 @@ class Args:
     eta_auto_next_weight: Optional[float] = None
     """--eta auto: κ in η* = Ran(Q_n) / (Ran(Q_n) + κ Ran(Q_{n+1})), the ratio whose objective is Q_n + κ Q_{n+1} (default 1, the paper's appendix)."""
     eta_auto_rule: Optional[EtaAutoRule] = None
-    """--eta auto follows: ranges (η* of the critics' running ranges, the paper's appendix, default), outcomes (each epoch η_n moves by --eta-auto-rate × (training episodes failing in stage n − those failing in stage n + 1) / those entering stage n, from the middle of --eta-auto-range) or gated (outcomes with only the upward term until a training episode has succeeded in stage n + 1, only the downward term after)."""
+    """--eta auto follows: ranges (η* of the critics' running ranges, the paper's appendix, default), outcomes (each epoch η_n moves by --eta-auto-rate × (training episodes failing in stage n − those failing in stage n + 1) / those entering stage n, from the middle of --eta-auto-range) gated (outcomes with only the upward term until a training episode has succeeded in stage n + 1, only the downward term after) or trusted (as gated, but before that success both terms, with η no lower than the middle of --eta-auto-range)."""
     eta_auto_rate: Optional[float] = None
-    """--eta auto with --eta-auto-rule outcomes or gated: η's largest move per epoch (default 0.05)."""
+    """--eta auto with --eta-auto-rule outcomes, gated or trusted: η's largest move per epoch (default 0.05)."""
     eta_auto_up_rate: Optional[float] = None
-    """--eta-auto-rule outcomes or gated: the rate of the own-failure (upward) term if it differs from --eta-auto-rate; 0: η only falls."""
+    """--eta-auto-rule outcomes, gated or trusted: the rate of the own-failure (upward) term if it differs from --eta-auto-rate; 0: η only falls."""
     normaliser: Optional[Normaliser] = None
     """How critics are scaled in the actor loss: batch (the paper's, default), ema (running min/max), floor, none (raw Q: C_n is the value of the cooperative reward η r_n + (1 − η) r_{n+1})."""
     norm_floor: Optional[float] = None

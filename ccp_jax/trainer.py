@@ -36,8 +36,8 @@ class TrainState(struct.PyTreeNode):
     key: jax.Array
     env_steps: jax.Array  # int32[]
     epoch: jax.Array  # int32[]
-    eta_auto: jax.Array  # float32[N]: the "outcomes" / "gated" rules' ratios for "auto" members (`outcome_eta`)
-    successor_succeeded: jax.Array  # bool[N]: a training episode has succeeded in stage n + 1 (the "gated" rule)
+    eta_auto: jax.Array  # float32[N]: the outcome rules' ratios for "auto" members (`outcome_eta`)
+    successor_succeeded: jax.Array  # bool[N]: a training episode has succeeded in stage n + 1 ("gated", "trusted")
 
 
 class EpochMetrics(NamedTuple):
@@ -74,7 +74,7 @@ def successor_succeeded(stages: jax.Array, successes: jax.Array) -> jax.Array:
 
 def outcome_eta(eta: jax.Array, stages: jax.Array, successes: jax.Array, rate: float,
                 bounds: tuple[float, float], up_rate: float | None = None,
-                gate: jax.Array | None = None) -> jax.Array:
+                gate: jax.Array | None = None, trust: bool = False) -> jax.Array:
     """One epoch's move of the "outcomes" rule of `--eta auto`: eta float32[N] -> float32[N].
 
     stages float32[N]: how many of the epoch's ended training episodes reached each stage; successes
@@ -89,15 +89,24 @@ def outcome_eta(eta: jax.Array, stages: jax.Array, successes: jax.Array, rate: f
     False only the upward term applies, where True only the downward one. Until its successor has
     succeeded once, failures after a handover say that stage n + 1 is not learnt yet, not that the
     handover is bad (peg's insertions at the CPU budget).
+
+    The "trusted" rule (`trust`) keeps both terms while the gate is False but holds η_n at or above the middle
+    of `bounds`: a successor that has never succeeded is not weighed above the agent's own critic, and an
+    agent that passes its own stage every time drifts back to even weighting instead of staying where its
+    early failures pushed it (4 rooms: the third agent at 0.95, Naive's greedy door). Once the gate is True,
+    only the downward term, down to the lower bound.
     """
     reached = _reached(stages, successes)
     entered, failed = reached[:-1], reached[:-1] - reached[1:]
     failed_next = jnp.concatenate([failed[1:], jnp.zeros((1,), failed.dtype)])
     up_rate = rate if up_rate is None else up_rate
+    lower = bounds[0]
     if gate is not None:
-        failed, failed_next = jnp.where(gate, 0.0, failed), jnp.where(gate, failed_next, 0.0)
+        failed, failed_next = jnp.where(gate, 0.0, failed), jnp.where(gate | trust, failed_next, 0.0)
+        if trust:
+            lower = jnp.where(gate, bounds[0], sum(bounds) / 2)
     moved = eta + (up_rate * failed - rate * failed_next) / jnp.maximum(entered, 1.0)
-    return jnp.clip(jnp.where(entered > 0, moved, eta), *bounds)
+    return jnp.clip(jnp.where(entered > 0, moved, eta), lower, bounds[1])
 
 
 def make_train(config: Config, env: Env) -> Trainer:
@@ -112,8 +121,8 @@ def make_train(config: Config, env: Env) -> Trainer:
     learner = make_learner(config, nets, action_size)
     num_channels = 1 if config.num_agents == 1 else config.num_stages
     capacity = config.buffer_size
-    outcomes = config.eta_auto_rule in ("outcomes", "gated")
-    gated = config.eta_auto_rule == "gated"
+    outcomes = config.eta_auto_rule in ("outcomes", "gated", "trusted")
+    gated = config.eta_auto_rule in ("gated", "trusted")
 
     def init(seed: jax.Array) -> TrainState:
         key = jax.random.PRNGKey(seed)
@@ -164,7 +173,8 @@ def make_train(config: Config, env: Env) -> Trainer:
                                buffer_size=buffer.size, pull_own=pull_own, pull_next=pull_next)
         succeeded = state.successor_succeeded | successor_succeeded(stats.stages, stats.successes)
         eta_auto = (outcome_eta(state.eta_auto, stats.stages, stats.successes, config.eta_auto_rate,
-                                config.eta_auto_range, config.eta_auto_up_rate, succeeded if gated else None)
+                                config.eta_auto_range, config.eta_auto_up_rate, succeeded if gated else None,
+                                config.eta_auto_rule == "trusted")
                     if outcomes else state.eta_auto)
         new_state = TrainState(agents=agents, buffer=buffer, env_state=env_state, key=key,
                                env_steps=env_steps, epoch=state.epoch + 1, eta_auto=eta_auto,

@@ -320,10 +320,10 @@ def test_env_is_traced_once_per_call_kind_on_one_device():
 def test_outcome_rule_moves_eta_against_hand_values():
     from ccp_jax.trainer import outcome_eta
 
-    def move(eta, stages, successes, rate=0.1, bounds=(0.05, 0.95), up_rate=None, gate=None):
+    def move(eta, stages, successes, rate=0.1, bounds=(0.05, 0.95), up_rate=None, gate=None, trust=False):
         return np.asarray(outcome_eta(jnp.asarray(eta, jnp.float32), jnp.asarray(stages, jnp.float32),
                                       jnp.float32(successes), rate, bounds, up_rate,
-                                      None if gate is None else jnp.asarray(gate)))
+                                      None if gate is None else jnp.asarray(gate), trust))
 
     # 10 ended episodes: 6 reached stage 1, 2 stage 2, 1 succeeded. Failed in stage 0 / 1 / 2: 4 / 4 / 1.
     np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1),
@@ -344,6 +344,17 @@ def test_outcome_rule_moves_eta_against_hand_values():
     # rises with its own failures instead of falling with the successor's.
     np.testing.assert_allclose(move([0.5, 1.0], [5, 2], 0, gate=[False, False]), [0.56, 0.95], rtol=1e-6)
     np.testing.assert_allclose(move([0.5, 1.0], [5, 2], 0), [0.5 + 0.1 * (3 - 2) / 5, 0.95], rtol=1e-6)
+    # "trusted": both terms before the successor's first success, but not below the middle (0.5) then.
+    np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1, gate=[False, True, False], trust=True),
+                               [0.5 + 0.1 * (4 - 4) / 10, 0.5 - 0.1 * 1 / 6, 0.5 + 0.1 * 1 / 2], rtol=1e-6)
+    # 4 rooms: the third agent passes its room every time into a successor that never succeeded: from 0.95
+    # back towards even weighting, held there; with the gate open the same episodes take it to the floor.
+    np.testing.assert_allclose(move([0.95, 1.0], [5, 5], 0, gate=[False, False], trust=True), [0.85, 0.95],
+                               rtol=1e-6)
+    np.testing.assert_allclose(move([0.52, 1.0], [5, 5], 0, gate=[False, False], trust=True), [0.5, 0.95],
+                               rtol=1e-6)
+    np.testing.assert_allclose(move([0.1, 1.0], [5, 5], 0, gate=[True, False], trust=True), [0.05, 0.95],
+                               rtol=1e-6)
 
 
 def test_successor_succeeded_looks_two_stages_ahead():
@@ -357,7 +368,7 @@ def test_successor_succeeded_looks_two_stages_ahead():
     assert check([5, 2], 0) == [False, False] and check([5, 2], 1) == [True, False]
 
 
-@pytest.mark.parametrize("rule", ["outcomes", "gated"])
+@pytest.mark.parametrize("rule", ["outcomes", "gated", "trusted"])
 def test_outcome_rule_trains_auto_members_at_its_ratios_epoch_by_epoch(rule):
     """An "auto" member trains epoch k + 1 at `outcome_eta` of epoch k's training episodes (with "gated",
     under the gate of every epoch's successes so far); a numeric member beside it keeps its ratio."""
@@ -374,7 +385,8 @@ def test_outcome_rule_trains_auto_members_at_its_ratios_epoch_by_epoch(rule):
         successes = jnp.asarray(m.train_success[0] * m.train_episodes[0])
         gate = gate | successor_succeeded(stages, successes)
         expected.append(float(outcome_eta(jnp.full((2,), expected[-1]), stages, successes, 0.2,
-                                          config.eta_auto_range, gate=gate if rule == "gated" else None)[0]))
+                                          config.eta_auto_range, gate=None if rule == "outcomes" else gate,
+                                          trust=rule == "trusted")[0]))
     np.testing.assert_allclose(used[:, 0], expected[:3], rtol=1e-5)
     np.testing.assert_allclose(state.eta_auto[0, 0], expected[3], rtol=1e-5)
     np.testing.assert_array_equal(state.successor_succeeded[0], gate)
