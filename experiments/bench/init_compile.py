@@ -1,0 +1,74 @@
+"""Compile time of the trainer's init at XLA's default LLVM optimisation against the O1 the trainer uses on a CPU.
+
+    python experiments/bench/init_compile.py                        # 2-room maze and peg, one run each
+    python experiments/bench/init_compile.py --envs maze --seeds 6  # a grid of 6
+
+The init (agents' networks and optimisers, replay buffers, the envs' first states, vmapped over the grid)
+runs once, but its program, mostly vmapped random initialisers, took as long to compile as a whole epoch.
+`GridTrainer` compiles it with `xla_backend_optimization_level=1` (and, for the maze, the fusion emitters as
+its epoch). Both versions are compiled in this one process, `reps` times each in alternating order, with no
+persistent compilation cache; the table gives the median compile time of each, their ratio, and whether the
+two states are equal bit for bit.
+"""
+from __future__ import annotations
+
+import dataclasses
+import statistics
+import time
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import tyro
+
+from ccp_jax.config import make_config
+from ccp_jax.envs import make_env
+from ccp_jax.trainer import make_grid_train, make_train
+
+
+@dataclasses.dataclass
+class Args:
+    envs: Sequence[str] = ("maze", "peg")
+    """"maze" (2 rooms) and/or "peg", at SPEC §7's "small" settings."""
+    seeds: int = 1
+    """Grid size."""
+    reps: int = 2
+    """Compiles of each version."""
+
+
+def compile_s(jitted, seeds) -> tuple[float, object]:
+    start = time.perf_counter()
+    compiled = jitted.lower(seeds).compile()
+    return time.perf_counter() - start, compiled
+
+
+def main(args: Args) -> None:
+    jax.config.update("jax_enable_compilation_cache", False)
+    rows = []
+    for name in args.envs:
+        config = make_config("small", env=name, seeds=tuple(range(args.seeds)), buffer_size=200_000,
+                             **({"rooms": 2} if name == "maze" else {}))
+        env = make_env(config)
+        grid = make_grid_train(config, env, devices=jax.devices()[:1])
+        versions = {"default": jax.jit(jax.vmap(make_train(config, env).init)), "O1": grid._init}
+        seeds = jnp.arange(args.seeds)
+        times, states = {k: [] for k in versions}, {}
+        for r in range(args.reps):
+            for key in (("default", "O1") if r % 2 == 0 else ("O1", "default")):
+                seconds, compiled = compile_s(versions[key], seeds)
+                times[key].append(seconds)
+                states[key] = jax.device_get(compiled(seeds))
+        same = all(np.array_equal(a, b) for a, b in zip(jax.tree.leaves(states["default"]),
+                                                         jax.tree.leaves(states["O1"])))
+        default, o1 = statistics.median(times["default"]), statistics.median(times["O1"])
+        rows.append((name, default, o1, default / o1, same))
+        print(f"{name}: default {times['default']}, O1 {times['O1']}", flush=True)
+    print(f"\ninit compile, grid of {args.seeds}, {args.reps} compiles each (median s), {jax.devices()[0].platform}")
+    print(f"{'env':>5} {'default':>8} {'O1':>7} {'ratio':>6}  same bits")
+    for name, default, o1, ratio, same in rows:
+        print(f"{name:>5} {default:8.1f} {o1:7.1f} {ratio:6.2f}  {'yes' if same else 'no'}")
+
+
+if __name__ == "__main__":
+    main(tyro.cli(Args, description=__doc__))
