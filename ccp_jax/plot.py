@@ -172,11 +172,16 @@ def curves(groups: dict[Group, list[Series]], metric: str = "success_rate",
     return ax.figure
 
 
+# After matplotlib's 10-colour cycle, for figures with more variants than that.
+EXTRA_COLORS = ["black", "gold", "teal", "navy", "lime", "maroon"]
+
+
 def line_colors(panels: Sequence[dict[Group, list[Series]]]) -> dict[str, str]:
     """One colour of matplotlib's cycle per group label over several panels' groups, in the order the
     panels draw them, for `curves(colors=...)`."""
     labels = dict.fromkeys(group_label(g) for groups in panels for g in sorted(groups, key=group_order))
-    return {label: f"C{i % 10}" for i, label in enumerate(labels)}
+    palette = [f"C{i}" for i in range(10)] + EXTRA_COLORS
+    return {label: palette[i % len(palette)] for i, label in enumerate(labels)}
 
 
 def ratio_cells(run_dirs: Sequence[str | Path], key: str = "final_success") -> dict[tuple[float, float], list[float]]:

@@ -3,7 +3,7 @@
     python experiments/auto_variants.py    # -> results/table1_cpu_forward_slide/auto_variants.png
 
 Draws runs already trained (RESULTS.md, "`auto` weighing the next critic κ times", "`auto`
-following where the episodes fail" and "`auto` on peg in hole"); each line is the mean ± std over the seeds of its folders
+following where the episodes fail", "`auto` on peg in hole" and the gated and trusted rules); each line is the mean ± std over the seeds of its folders
 (six per maze, three on peg). The maze panels draw success; the peg panel draws the grasp (the
 fraction of evaluations reaching stage 2), since no peg run inserts at this budget.
 """
@@ -34,14 +34,17 @@ PANELS = {
               [("best swept, η = 0.5", ["csac_etas_0.5-0.7", "csac_fresh_seeds"], (0.5, 0.5, 0.5, 1.0)),
                ("ramp 0.1, 0.3, 0.5", ["csac_ramp", "csac_ramp_fresh_seeds"], (0.1, 0.3, 0.5, 1.0)),
                ("auto, κ = 4", ["csac_auto_k4"], None),
-               ("auto, outcomes down-only", ["csac_auto_outcomes_down"], None)]),
+               ("auto, outcomes down-only", ["csac_auto_outcomes_down"], None),
+               ("auto, gated", ["csac_auto_gated"], None),
+               ("auto, trusted", ["csac_auto_trusted"], None)]),
     # Peg has no robot: its sweep is the one of sessions 10-12 (results/table1_cpu).
     "peg": (RESULTS / "table1_cpu" / "peg", STAGE2,
             [("best swept for the grasp, η = 0.9", ["csac_etas_0.9"], (0.9, 1.0)),
              ("auto (η*)", ["csac_etas_auto"], None),
              ("auto, κ = 4", ["csac_auto_k4"], None),
              ("auto, outcomes down-only", ["csac_auto_outcomes_down"], None),
-             ("auto, gated", ["csac_auto_gated"], None)]),
+             ("auto, gated", ["csac_auto_gated"], None),
+             ("auto, trusted", ["csac_auto_trusted"], None)]),
 }
 
 

@@ -83,6 +83,8 @@ def test_panels_side_by_side_draw_a_variant_in_one_colour():
     by_label = [{line.get_label().split(" (n=")[0]: line.get_color() for line in ax.get_lines()} for ax in drawn]
     assert by_label[0]["sac"] == by_label[1]["sac"] == "C1"
     assert by_label[1]["naive"] == "C2" and by_label[0]["csac η=0.1"] == "C0"
+    many = {("maze-2", "csac", (eta / 100, 1.0)): one for eta in range(1, 13)}  # 12 variants: beyond the cycle
+    assert len(set(plot.line_colors([many]).values())) == 12
 
 
 def test_plot_labels_keep_runs_of_one_algo_apart(run_dir, tmp_path, monkeypatch):
