@@ -265,8 +265,8 @@ class GridTrainer:
             local_step, mesh=mesh, in_specs=(spec, spec), out_specs=(spec, spec), check_vma=False)
         # Compile options only apply where they were measured: CPU (`envs_mjx.cpu_compiler_options`).
         self.compiler_options = cpu_compiler_options(env) if self.devices[0].platform == "cpu" else {}
-        # The init runs once; its program (mostly the networks' random initialisers, vmapped) compiles
-        # 2-10x faster at LLVM's O1 on a CPU: the same bits on the maze, MJX's reset moves by ulps.
+        # The init runs once; its program (mostly the networks' random initialisers, vmapped) compiles 2-5x
+        # faster at LLVM's O1 on a CPU (bench/init_compile.py): the same bits on the maze, MJX's reset by ulps.
         init_options = ({**self.compiler_options, "xla_backend_optimization_level": 1}
                         if self.devices[0].platform == "cpu" else None)
         self._init = jax.jit(jax.vmap(trainer.init), in_shardings=self.sharding, out_shardings=self.sharding,
