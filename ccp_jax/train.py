@@ -107,7 +107,7 @@ class Args:
     eta_auto_next_weight: Optional[float] = None
     """--eta auto: κ in η* = Ran(Q_n) / (Ran(Q_n) + κ Ran(Q_{n+1})), the ratio whose objective is Q_n + κ Q_{n+1} (default 1, the paper's appendix)."""
     eta_auto_rule: Optional[EtaAutoRule] = None
-    """--eta auto follows: ranges (η* of the critics' running ranges, the paper's appendix, default), outcomes (each epoch η_n moves by --eta-auto-rate × (training episodes failing in stage n − those failing in stage n + 1) / those entering stage n, from the middle of --eta-auto-range) gated (outcomes with only the upward term until a training episode has succeeded in stage n + 1, only the downward term after) or trusted (as gated, but before that success both terms, with η no lower than the middle of --eta-auto-range)."""
+    """--eta auto follows: ranges (η* of the critics' running ranges, the paper's appendix, default), outcomes (each epoch η_n moves by --eta-auto-rate × (training episodes failing in stage n − those failing in stage n + 1) / those entering stage n, from the middle of --eta-auto-range), gated (outcomes with only the upward term until a training episode has succeeded in stage n + 1, only the downward term after) or trusted (as gated, but before that success both terms, with η no lower than the middle of --eta-auto-range)."""
     eta_auto_rate: Optional[float] = None
     """--eta auto with --eta-auto-rule outcomes, gated or trusted: η's largest move per epoch (default 0.05)."""
     eta_auto_up_rate: Optional[float] = None
