@@ -102,9 +102,11 @@ def outcome_eta(eta: jax.Array, stages: jax.Array, successes: jax.Array, rate: f
     up_rate = rate if up_rate is None else up_rate
     lower = bounds[0]
     if gate is not None:
-        failed, failed_next = jnp.where(gate, 0.0, failed), jnp.where(gate | trust, failed_next, 0.0)
+        failed = jnp.where(gate, 0.0, failed)
         if trust:
             lower = jnp.where(gate, bounds[0], sum(bounds) / 2)
+        else:
+            failed_next = jnp.where(gate, failed_next, 0.0)
     moved = eta + (up_rate * failed - rate * failed_next) / jnp.maximum(entered, 1.0)
     return jnp.clip(jnp.where(entered > 0, moved, eta), lower, bounds[1])
 
@@ -190,6 +192,11 @@ def check_members_at_once(members_at_once: int | None) -> None:
         raise ConfigError("members_at_once", f"must be >= 1, got {members_at_once}")
 
 
+# The init runs once; on a CPU its program (mostly the networks' random initialisers, vmapped) compiles 2-5x
+# faster at LLVM's O1 (experiments/bench/init_compile.py): the same bits on the maze, MJX's reset by ulps.
+CPU_INIT_OPTIONS = {"xla_backend_optimization_level": 1}
+
+
 # On a CPU, how many floats one layer's stacked critic activations of a device's vmapped members may
 # take (members × critic slots × batch × widest layer): 12 slots of SPEC §7's [64, 64] at batch 256,
 # ≈ 0.75 MB. Measured on the 2-core CPU (experiments/bench/README.md, "Members vmapped on a CPU").
@@ -264,11 +271,9 @@ class GridTrainer:
         step = local_step if one else jax.shard_map(
             local_step, mesh=mesh, in_specs=(spec, spec), out_specs=(spec, spec), check_vma=False)
         # Compile options only apply where they were measured: CPU (`envs_mjx.cpu_compiler_options`).
-        self.compiler_options = cpu_compiler_options(env) if self.devices[0].platform == "cpu" else {}
-        # The init runs once; its program (mostly the networks' random initialisers, vmapped) compiles 2-5x
-        # faster at LLVM's O1 on a CPU (bench/init_compile.py): the same bits on the maze, MJX's reset by ulps.
-        init_options = ({**self.compiler_options, "xla_backend_optimization_level": 1}
-                        if self.devices[0].platform == "cpu" else None)
+        cpu = self.devices[0].platform == "cpu"
+        self.compiler_options = cpu_compiler_options(env) if cpu else {}
+        init_options = {**self.compiler_options, **CPU_INIT_OPTIONS} if cpu else None
         self._init = jax.jit(jax.vmap(trainer.init), in_shardings=self.sharding, out_shardings=self.sharding,
                              compiler_options=init_options)
         self._step = jax.jit(step, in_shardings=(self.sharding, self.sharding),

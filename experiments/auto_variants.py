@@ -3,8 +3,8 @@
     python experiments/auto_variants.py    # -> results/table1_cpu_forward_slide/auto_variants.png
 
 Draws runs already trained (RESULTS.md, "`auto` weighing the next critic κ times", "`auto`
-following where the episodes fail", "`auto` on peg in hole" and the gated and trusted rules); each line is the mean ± std over the seeds of its folders
-(six per maze, three on peg). The maze panels draw success; the peg panel draws the grasp (the
+following where the episodes fail", "`auto` on peg in hole" and the gated and trusted rules); each
+line is the mean ± std over the seeds of its folders (six per maze, three on peg). The maze panels draw success; the peg panel draws the grasp (the
 fraction of evaluations reaching stage 2), since no peg run inserts at this budget.
 """
 from __future__ import annotations

@@ -15,6 +15,7 @@ from ccp_jax.buffer import Transition
 from ccp_jax.config import make_config
 from ccp_jax.learner import init_agents, make_learner, make_networks, train_loops
 from ccp_jax.networks import sample_action
+from ccp_jax.trainer import CPU_INIT_OPTIONS
 
 OBS, ACT, B = 5, 2, 16
 
@@ -22,7 +23,7 @@ OBS, ACT, B = 5, 2, 16
 def _init_agents(nets, key, num_agents, obs_size, action_size, **kwargs):
     """`init_agents` compiled as the trainer's init is (LLVM O1: the same bits, seconds instead of eager's tens)."""
     init = jax.jit(lambda k: init_agents(nets, k, num_agents, obs_size, action_size, **kwargs),
-                   compiler_options={"xla_backend_optimization_level": 1})
+                   compiler_options=CPU_INIT_OPTIONS)
     return init(key)
 
 

@@ -5,11 +5,11 @@
 
 The init (agents' networks and optimisers, replay buffers, the envs' first states, vmapped over the grid)
 runs once, but its program, mostly vmapped random initialisers, took as long to compile as a whole epoch.
-`GridTrainer` compiles it with `xla_backend_optimization_level=1` (and, for the maze, the fusion emitters as
-its epoch). Both versions are traced, then compiled once each in this one process, O1 first (so one-time costs of a
-process's first compile count against it), with no persistent compilation cache (a second compile of the same program
-would hit JAX's in-memory cache); the table gives each one's XLA compile time (tracing apart), their ratio, and whether the two
-states are equal bit for bit.
+`GridTrainer` compiles it with `trainer.CPU_INIT_OPTIONS` (LLVM O1; for the maze also the fusion emitters
+of its epoch). Both versions are traced, then compiled once each in this one process, O1 first (so one-time
+costs of a process's first compile count against it), with no persistent compilation cache (a second compile
+of the same program would hit JAX's in-memory cache); the table gives each one's XLA compile time (tracing
+apart), their ratio, and whether the two states are equal bit for bit.
 """
 from __future__ import annotations
 
