@@ -28,6 +28,8 @@ CoopScale = Literal["unit", "own"]
 COOP_SCALES = ("unit", "own")
 EtaAutoRule = Literal["ranges", "outcomes", "gated", "trusted"]
 ETA_AUTO_RULES = ("ranges", "outcomes", "gated", "trusted")
+OUTCOME_RULES = ("outcomes", "gated", "trusted")  # the rules `trainer.outcome_eta` moves
+GATED_RULES = ("gated", "trusted")  # those that watch `successor_succeeded`
 # The maze kinematics of every run before config.json recorded them (sessions 1-27): reversing, stopping at walls.
 LEGACY_MAZE = {"maze_reverse": True, "maze_slide": False}
 AUTO = "auto"  # a ratio estimated during training (η*), see `Config.eta_auto_range`

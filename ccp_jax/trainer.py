@@ -20,7 +20,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec, SingleDeviceShardin
 from ccp_jax import buffer as replay
 from ccp_jax.buffer import ReplayBuffer
 from ccp_jax.collect import EvalMetrics, TracedOnce, make_collect, make_evaluate, per_episode
-from ccp_jax.config import Config, ConfigError
+from ccp_jax.config import GATED_RULES, OUTCOME_RULES, Config, ConfigError, EtaAutoRule
 from ccp_jax.devices import available_cores, grid_devices, pad_grid
 from ccp_jax.learner import (AgentState, Networks, UpdateMetrics, critic_slots, init_agents, make_learner,
                              make_networks, train_loops)
@@ -74,8 +74,8 @@ def successor_succeeded(stages: jax.Array, successes: jax.Array) -> jax.Array:
 
 def outcome_eta(eta: jax.Array, stages: jax.Array, successes: jax.Array, rate: float,
                 bounds: tuple[float, float], up_rate: float | None = None,
-                gate: jax.Array | None = None, trust: bool = False) -> jax.Array:
-    """One epoch's move of the "outcomes" rule of `--eta auto`: eta float32[N] -> float32[N].
+                rule: EtaAutoRule = "outcomes", gate: jax.Array | None = None) -> jax.Array:
+    """One epoch's move of `--eta auto`'s outcome rules (`rule`): eta float32[N] -> float32[N].
 
     stages float32[N]: how many of the epoch's ended training episodes reached each stage; successes
     float32[]: how many succeeded. Of the episodes that entered stage n, those that failed in it push η_n
@@ -85,13 +85,13 @@ def outcome_eta(eta: jax.Array, stages: jax.Array, successes: jax.Array, rate: f
     clipped to `bounds`. An agent whose stage no episode entered keeps its η. (The last agent's entry
     moves too but is never used.)
 
-    The "gated" rule passes `gate` bool[N] (`successor_succeeded`, accumulated over epochs): where it is
+    The "gated" rule needs `gate` bool[N] (`successor_succeeded`, accumulated over epochs): where it is
     False only the upward term applies, where True only the downward one. Until its successor has
     succeeded once, failures after a handover say that stage n + 1 is not learnt yet, not that the
     handover is bad (peg's insertions at the CPU budget).
 
-    The "trusted" rule (`trust`) keeps both terms while the gate is False but holds η_n at or above the middle
-    of `bounds`: a successor that has never succeeded is not weighed above the agent's own critic, and an
+    The "trusted" rule (also given `gate`) keeps both terms while the gate is False but holds η_n at or
+    above the middle of `bounds`: a successor that has never succeeded is not weighed above the agent's own critic, and an
     agent that passes its own stage every time drifts back to even weighting instead of staying where its
     early failures pushed it (4 rooms: the third agent at 0.95, Naive's greedy door). Once the gate is True,
     only the downward term, down to the lower bound.
@@ -101,9 +101,9 @@ def outcome_eta(eta: jax.Array, stages: jax.Array, successes: jax.Array, rate: f
     failed_next = jnp.concatenate([failed[1:], jnp.zeros((1,), failed.dtype)])
     up_rate = rate if up_rate is None else up_rate
     lower = bounds[0]
-    if gate is not None:
+    if rule in GATED_RULES:
         failed = jnp.where(gate, 0.0, failed)
-        if trust:
+        if rule == "trusted":
             lower = jnp.where(gate, bounds[0], sum(bounds) / 2)
         else:
             failed_next = jnp.where(gate, failed_next, 0.0)
@@ -123,8 +123,7 @@ def make_train(config: Config, env: Env) -> Trainer:
     learner = make_learner(config, nets, action_size)
     num_channels = 1 if config.num_agents == 1 else config.num_stages
     capacity = config.buffer_size
-    outcomes = config.eta_auto_rule in ("outcomes", "gated", "trusted")
-    gated = config.eta_auto_rule in ("gated", "trusted")
+    outcomes = config.eta_auto_rule in OUTCOME_RULES
 
     def init(seed: jax.Array) -> TrainState:
         key = jax.random.PRNGKey(seed)
@@ -175,8 +174,7 @@ def make_train(config: Config, env: Env) -> Trainer:
                                buffer_size=buffer.size, pull_own=pull_own, pull_next=pull_next)
         succeeded = state.successor_succeeded | successor_succeeded(stats.stages, stats.successes)
         eta_auto = (outcome_eta(state.eta_auto, stats.stages, stats.successes, config.eta_auto_rate,
-                                config.eta_auto_range, config.eta_auto_up_rate, succeeded if gated else None,
-                                config.eta_auto_rule == "trusted")
+                                config.eta_auto_range, config.eta_auto_up_rate, config.eta_auto_rule, succeeded)
                     if outcomes else state.eta_auto)
         new_state = TrainState(agents=agents, buffer=buffer, env_state=env_state, key=key,
                                env_steps=env_steps, epoch=state.epoch + 1, eta_auto=eta_auto,

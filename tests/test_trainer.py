@@ -320,10 +320,10 @@ def test_env_is_traced_once_per_call_kind_on_one_device():
 def test_outcome_rule_moves_eta_against_hand_values():
     from ccp_jax.trainer import outcome_eta
 
-    def move(eta, stages, successes, rate=0.1, bounds=(0.05, 0.95), up_rate=None, gate=None, trust=False):
+    def move(eta, stages, successes, rate=0.1, bounds=(0.05, 0.95), up_rate=None, rule="outcomes", gate=None):
         return np.asarray(outcome_eta(jnp.asarray(eta, jnp.float32), jnp.asarray(stages, jnp.float32),
-                                      jnp.float32(successes), rate, bounds, up_rate,
-                                      None if gate is None else jnp.asarray(gate), trust))
+                                      jnp.float32(successes), rate, bounds, up_rate, rule,
+                                      None if gate is None else jnp.asarray(gate)))
 
     # 10 ended episodes: 6 reached stage 1, 2 stage 2, 1 succeeded. Failed in stage 0 / 1 / 2: 4 / 4 / 1.
     np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1),
@@ -338,22 +338,23 @@ def test_outcome_rule_moves_eta_against_hand_values():
     np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1, up_rate=0.0),
                                [0.5 - 0.1 * 4 / 10, 0.5 - 0.1 * 1 / 6, 0.5], rtol=1e-6)
     # "gated": before the successor's first success only the upward term, after it only the downward one.
-    np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1, gate=[False, True, False]),
+    np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1, rule="gated", gate=[False, True, False]),
                                [0.5 + 0.1 * 4 / 10, 0.5 - 0.1 * 1 / 6, 0.5 + 0.1 * 1 / 2], rtol=1e-6)
     # Peg at the CPU budget: grasps hand over, no insertion ever succeeds, so the grasping agent's ratio
     # rises with its own failures instead of falling with the successor's.
-    np.testing.assert_allclose(move([0.5, 1.0], [5, 2], 0, gate=[False, False]), [0.56, 0.95], rtol=1e-6)
+    np.testing.assert_allclose(move([0.5, 1.0], [5, 2], 0, rule="gated", gate=[False, False]), [0.56, 0.95],
+                               rtol=1e-6)
     np.testing.assert_allclose(move([0.5, 1.0], [5, 2], 0), [0.5 + 0.1 * (3 - 2) / 5, 0.95], rtol=1e-6)
     # "trusted": both terms before the successor's first success, but not below the middle (0.5) then.
-    np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1, gate=[False, True, False], trust=True),
+    np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1, gate=[False, True, False], rule="trusted"),
                                [0.5 + 0.1 * (4 - 4) / 10, 0.5 - 0.1 * 1 / 6, 0.5 + 0.1 * 1 / 2], rtol=1e-6)
     # 4 rooms: the third agent passes its room every time into a successor that never succeeded: from 0.95
     # back towards even weighting, held there; with the gate open the same episodes take it to the floor.
-    np.testing.assert_allclose(move([0.95, 1.0], [5, 5], 0, gate=[False, False], trust=True), [0.85, 0.95],
+    np.testing.assert_allclose(move([0.95, 1.0], [5, 5], 0, gate=[False, False], rule="trusted"), [0.85, 0.95],
                                rtol=1e-6)
-    np.testing.assert_allclose(move([0.52, 1.0], [5, 5], 0, gate=[False, False], trust=True), [0.5, 0.95],
+    np.testing.assert_allclose(move([0.52, 1.0], [5, 5], 0, gate=[False, False], rule="trusted"), [0.5, 0.95],
                                rtol=1e-6)
-    np.testing.assert_allclose(move([0.1, 1.0], [5, 5], 0, gate=[True, False], trust=True), [0.05, 0.95],
+    np.testing.assert_allclose(move([0.1, 1.0], [5, 5], 0, gate=[True, False], rule="trusted"), [0.05, 0.95],
                                rtol=1e-6)
 
 
@@ -385,8 +386,7 @@ def test_outcome_rule_trains_auto_members_at_its_ratios_epoch_by_epoch(rule):
         successes = jnp.asarray(m.train_success[0] * m.train_episodes[0])
         gate = gate | successor_succeeded(stages, successes)
         expected.append(float(outcome_eta(jnp.full((2,), expected[-1]), stages, successes, 0.2,
-                                          config.eta_auto_range, gate=None if rule == "outcomes" else gate,
-                                          trust=rule == "trusted")[0]))
+                                          config.eta_auto_range, rule=rule, gate=gate)[0]))
     np.testing.assert_allclose(used[:, 0], expected[:3], rtol=1e-5)
     np.testing.assert_allclose(state.eta_auto[0, 0], expected[3], rtol=1e-5)
     np.testing.assert_array_equal(state.successor_succeeded[0], gate)
