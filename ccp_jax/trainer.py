@@ -91,10 +91,10 @@ def outcome_eta(eta: jax.Array, stages: jax.Array, successes: jax.Array, rate: f
     handover is bad (peg's insertions at the CPU budget).
 
     The "trusted" rule (also given `gate`) keeps both terms while the gate is False but holds η_n at or
-    above the middle of `bounds`: a successor that has never succeeded is not weighed above the agent's own critic, and an
-    agent that passes its own stage every time drifts back to even weighting instead of staying where its
-    early failures pushed it (4 rooms: the third agent at 0.95, Naive's greedy door). Once the gate is True,
-    only the downward term, down to the lower bound.
+    above the middle of `bounds`: a successor that has never succeeded is not weighed above the agent's
+    own critic, and an agent that passes its own stage every time drifts back to even weighting instead of
+    staying where its early failures pushed it (4 rooms: the third agent at 0.95, Naive's greedy door).
+    Once the gate is True, only the downward term, down to the lower bound.
     """
     reached = _reached(stages, successes)
     entered, failed = reached[:-1], reached[:-1] - reached[1:]
