@@ -188,14 +188,14 @@ def make_evaluate(config: Config, env: Env, actor: Actor, episodes: int | None =
     def evaluate(actor_params, key: jax.Array) -> EvalMetrics:
         state = v_reset(jax.random.split(key, episodes))  # the deterministic evaluation's starts, as before
         key = jax.random.fold_in(key, 1)  # the stochastic actions' stream
-        zeros = jnp.zeros((episodes,), jnp.float32)
+        zeros = jnp.zeros_like(state.reward)
 
         def cond(carry):
-            state, _, _, t, _ = carry
-            return jnp.any(state.done == 0) & (t < config.max_episode_steps)
+            state, _, length, _ = carry
+            return jnp.any(state.done == 0) & (length.max() < config.max_episode_steps)
 
         def body(carry):
-            state, ret, length, t, key = carry
+            state, ret, length, key = carry
             agent = agent_of(config, state.info["stage"])
             mean, log_std = policy_mean_and_log_std(actor, actor_params, state.obs, agent)
             if stochastic:
@@ -205,9 +205,9 @@ def make_evaluate(config: Config, env: Env, actor: Actor, episodes: int | None =
                 action = deterministic_action(mean)
             nxt = v_step(state, action)
             live = 1.0 - state.done
-            return (where_done(state.done, state, nxt), ret + live * nxt.reward, length + live, t + 1, key)
+            return (where_done(state.done, state, nxt), ret + live * nxt.reward, length + live, key)
 
-        state, ret, length, _, _ = jax.lax.while_loop(cond, body, (state, zeros, zeros, jnp.int32(0), key))
+        state, ret, length, _ = jax.lax.while_loop(cond, body, (state, zeros, zeros, key))
         return episode_metrics(state, ret, length, num_stages)
 
     return evaluate
