@@ -188,6 +188,8 @@ def make_evaluate(config: Config, env: Env, actor: Actor, episodes: int | None =
     def evaluate(actor_params, key: jax.Array) -> EvalMetrics:
         state = v_reset(jax.random.split(key, episodes))  # the deterministic evaluation's starts, as before
         key = jax.random.fold_in(key, 1)  # the stochastic actions' stream
+        # Sums shaped like the state's reward, and no step counter (a live episode's length is the step):
+        # a carry batched like the state, so a grid's vmap batches the body (an MJX step on peg) fewer times.
         zeros = jnp.zeros_like(state.reward)
 
         def cond(carry):
