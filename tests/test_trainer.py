@@ -356,6 +356,8 @@ def test_outcome_rule_moves_eta_against_hand_values():
                                rtol=1e-6)
     np.testing.assert_allclose(move([0.1, 1.0], [5, 5], 0, gate=[True, False], rule="trusted"), [0.05, 0.95],
                                rtol=1e-6)
+    with pytest.raises(ValueError, match="needs gate"):
+        move([0.5, 1.0], [5, 5], 0, rule="gated")
 
 
 def test_successor_succeeded_looks_two_stages_ahead():
