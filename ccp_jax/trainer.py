@@ -96,14 +96,14 @@ def outcome_eta(eta: jax.Array, stages: jax.Array, successes: jax.Array, rate: f
     staying where its early failures pushed it (4 rooms: the third agent at 0.95, Naive's greedy door).
     Once the gate is True, only the downward term, down to the lower bound.
     """
-    if rule in GATED_RULES and gate is None:
-        raise ValueError(f"outcome_eta: rule {rule!r} needs gate (successor_succeeded)")
     reached = _reached(stages, successes)
     entered, failed = reached[:-1], reached[:-1] - reached[1:]
     failed_next = jnp.concatenate([failed[1:], jnp.zeros((1,), failed.dtype)])
     up_rate = rate if up_rate is None else up_rate
     lower = bounds[0]
     if rule in GATED_RULES:
+        if gate is None:
+            raise ValueError(f"outcome_eta: rule {rule!r} needs gate (successor_succeeded)")
         failed = jnp.where(gate, 0.0, failed)
         if rule == "trusted":
             lower = jnp.where(gate, bounds[0], sum(bounds) / 2)

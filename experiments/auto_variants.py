@@ -4,8 +4,9 @@
 
 Draws runs already trained (RESULTS.md, "`auto` weighing the next critic κ times", "`auto`
 following where the episodes fail", "`auto` on peg in hole" and the gated and trusted rules); each
-line is the mean ± std over the seeds of its folders (six per maze, three on peg). The maze panels draw success; the peg panel draws the grasp (the
-fraction of evaluations reaching stage 2), since no peg run inserts at this budget.
+line is the mean ± std over the seeds of its folders (six per maze, three on peg). The maze panels
+draw success; the peg panel draws the grasp (the fraction of evaluations reaching stage 2), since no
+peg run inserts at this budget.
 """
 from __future__ import annotations
 
