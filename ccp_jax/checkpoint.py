@@ -29,8 +29,11 @@ class CheckpointError(ConfigError):
 
 
 def manager(run_dir: Path, max_to_keep: int = 2) -> ocp.CheckpointManager:
+    # Synchronous: `save` waits for the write anyway, and orbax's async manager counts that wait as the next
+    # save's "Waiting for previous save" and warns about it (every save of a large replay buffer).
     return ocp.CheckpointManager(Path(run_dir).absolute() / CHECKPOINT_DIR,
-                                 options=ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True))
+                                 options=ocp.CheckpointManagerOptions(max_to_keep=max_to_keep, create=True,
+                                                                      enable_async_checkpointing=False))
 
 
 def _nonempty(tree: Any) -> dict[str, Any]:
