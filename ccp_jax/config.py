@@ -137,6 +137,8 @@ class Config:
     eta_auto_rate: float = 0.05
     # None: the same as `eta_auto_rate`; 0 lets the ratio only fall.
     eta_auto_up_rate: float | None = None
+    # The outcome rules' lower bound for agent n: low + n × step (at most the range's middle); 0: low for all.
+    eta_auto_floor_step: float = 0.0
     # TP (Transition Policies, Lee et al. 2019; ccp_jax/tp). Primitives: a finished --algo naive run.
     primitives: str | None = None
     primitives_member: int = 0
@@ -334,6 +336,8 @@ class Config:
         if self.eta_auto_up_rate is not None and not (math.isfinite(self.eta_auto_up_rate)
                                                       and 0.0 <= self.eta_auto_up_rate <= 1.0):
             raise ConfigError("eta_auto_up_rate", f"must be in [0, 1] (or None: eta_auto_rate), got {self.eta_auto_up_rate}")
+        if not (math.isfinite(self.eta_auto_floor_step) and 0.0 <= self.eta_auto_floor_step <= 1.0):
+            raise ConfigError("eta_auto_floor_step", f"must be in [0, 1], got {self.eta_auto_floor_step}")
         lo, hi = self.eta_auto_range
         if not 0.0 <= lo <= hi <= 1.0:
             raise ConfigError("eta_auto_range", f"must satisfy 0 <= low <= high <= 1, got {self.eta_auto_range}")

@@ -112,6 +112,8 @@ class Args:
     """--eta auto with --eta-auto-rule outcomes, gated or trusted: η's largest move per epoch (default 0.05)."""
     eta_auto_up_rate: Optional[float] = None
     """--eta-auto-rule outcomes, gated or trusted: the rate of the own-failure (upward) term if it differs from --eta-auto-rate; 0: η only falls."""
+    eta_auto_floor_step: Optional[float] = None
+    """--eta-auto-rule outcomes, gated or trusted: agent n's ratio falls no lower than the low end of --eta-auto-range + n × this (at most the range's middle); default 0."""
     normaliser: Optional[Normaliser] = None
     """How critics are scaled in the actor loss: batch (the paper's, default), ema (running min/max), floor, none (raw Q: C_n is the value of the cooperative reward η r_n + (1 − η) r_{n+1})."""
     norm_floor: Optional[float] = None
@@ -151,7 +153,7 @@ OVERRIDES = ("maze_reverse", "maze_slide", "total_steps", "num_envs", "hidden", 
              "buffer_size", "steps_per_epoch", "train_loops_per_epoch", "train_cycles_per_epoch", "eval_episodes", "max_episode_steps", "gamma", "absorbing_stages",
              "absorbing_success", "tanh_log_prob", "normaliser", "norm_floor", "norm_ema_rate", "coop_scale", "next_action", "tau",
              "actor_lr", "critic_lr", "alpha_lr", "target_entropy", "initial_alpha", "start_steps", "normalise_last", "eta_auto_range",
-             "eta_auto_next_weight", "eta_auto_rule", "eta_auto_rate", "eta_auto_up_rate",
+             "eta_auto_next_weight", "eta_auto_rule", "eta_auto_rate", "eta_auto_up_rate", "eta_auto_floor_step",
              "primitives_member", "tp_max_steps", "tp_init_episodes", "tp_prox_updates", "tp_ppo_epochs", "tp_buffer_size")
 
 

@@ -74,7 +74,7 @@ def successor_succeeded(stages: jax.Array, successes: jax.Array) -> jax.Array:
 
 def outcome_eta(eta: jax.Array, stages: jax.Array, successes: jax.Array, rate: float,
                 bounds: tuple[float, float], up_rate: float | None = None,
-                rule: EtaAutoRule = "outcomes", gate: jax.Array | None = None) -> jax.Array:
+                rule: EtaAutoRule = "outcomes", gate: jax.Array | None = None, floor_step: float = 0.0) -> jax.Array:
     """One epoch's move of `--eta auto`'s outcome rules (`rule`): eta float32[N] -> float32[N].
 
     stages float32[N]: how many of the epoch's ended training episodes reached each stage; successes
@@ -83,7 +83,8 @@ def outcome_eta(eta: jax.Array, stages: jax.Array, successes: jax.Array, rate: f
     critic more) and those that failed in stage n + 1 push it down by `rate` (it hands over where its
     successor fails: weigh the next critic more), as fractions of the episodes that entered stage n;
     clipped to `bounds`. An agent whose stage no episode entered keeps its η. (The last agent's entry
-    moves too but is never used.)
+    moves too but is never used.) With `floor_step`, agent n's lower bound is bounds[0] + n × floor_step,
+    never above the middle of `bounds`: a ramp of floors along the chain (the first agent's is bounds[0]).
 
     The "gated" rule needs `gate` bool[N] (`successor_succeeded`, accumulated over epochs): where it is
     False only the upward term applies, where True only the downward one. Until its successor has
@@ -94,19 +95,20 @@ def outcome_eta(eta: jax.Array, stages: jax.Array, successes: jax.Array, rate: f
     above the middle of `bounds`: a successor that has never succeeded is not weighed above the agent's
     own critic, and an agent that passes its own stage every time drifts back to even weighting instead of
     staying where its early failures pushed it (4 rooms: the third agent at 0.95, Naive's greedy door).
-    Once the gate is True, only the downward term, down to the lower bound.
+    Once the gate is True, only the downward term, down to the agent's lower bound.
     """
     reached = _reached(stages, successes)
     entered, failed = reached[:-1], reached[:-1] - reached[1:]
     failed_next = jnp.concatenate([failed[1:], jnp.zeros((1,), failed.dtype)])
     up_rate = rate if up_rate is None else up_rate
-    lower = bounds[0]
+    middle = sum(bounds) / 2
+    lower = jnp.minimum(bounds[0] + floor_step * jnp.arange(eta.shape[0]), middle)
     if rule in GATED_RULES:
         if gate is None:
             raise ValueError(f"outcome_eta: rule {rule!r} needs gate (successor_succeeded)")
         failed = jnp.where(gate, 0.0, failed)
         if rule == "trusted":
-            lower = jnp.where(gate, bounds[0], sum(bounds) / 2)
+            lower = jnp.where(gate, lower, middle)
         else:
             failed_next = jnp.where(gate, failed_next, 0.0)
     moved = eta + (up_rate * failed - rate * failed_next) / jnp.maximum(entered, 1.0)
@@ -176,7 +178,8 @@ def make_train(config: Config, env: Env) -> Trainer:
                                buffer_size=buffer.size, pull_own=pull_own, pull_next=pull_next)
         succeeded = state.successor_succeeded | successor_succeeded(stats.stages, stats.successes)
         eta_auto = (outcome_eta(state.eta_auto, stats.stages, stats.successes, config.eta_auto_rate,
-                                config.eta_auto_range, config.eta_auto_up_rate, config.eta_auto_rule, succeeded)
+                                config.eta_auto_range, config.eta_auto_up_rate, config.eta_auto_rule, succeeded,
+                                config.eta_auto_floor_step)
                     if outcomes else state.eta_auto)
         new_state = TrainState(agents=agents, buffer=buffer, env_state=env_state, key=key,
                                env_steps=env_steps, epoch=state.epoch + 1, eta_auto=eta_auto,

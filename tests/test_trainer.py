@@ -320,10 +320,11 @@ def test_env_is_traced_once_per_call_kind_on_one_device():
 def test_outcome_rule_moves_eta_against_hand_values():
     from ccp_jax.trainer import outcome_eta
 
-    def move(eta, stages, successes, rate=0.1, bounds=(0.05, 0.95), up_rate=None, rule="outcomes", gate=None):
+    def move(eta, stages, successes, rate=0.1, bounds=(0.05, 0.95), up_rate=None, rule="outcomes", gate=None,
+             floor_step=0.0):
         return np.asarray(outcome_eta(jnp.asarray(eta, jnp.float32), jnp.asarray(stages, jnp.float32),
                                       jnp.float32(successes), rate, bounds, up_rate, rule,
-                                      None if gate is None else jnp.asarray(gate)))
+                                      None if gate is None else jnp.asarray(gate), floor_step))
 
     # 10 ended episodes: 6 reached stage 1, 2 stage 2, 1 succeeded. Failed in stage 0 / 1 / 2: 4 / 4 / 1.
     np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1),
@@ -356,6 +357,14 @@ def test_outcome_rule_moves_eta_against_hand_values():
                                rtol=1e-6)
     np.testing.assert_allclose(move([0.1, 1.0], [5, 5], 0, gate=[True, False], rule="trusted"), [0.05, 0.95],
                                rtol=1e-6)
+    # A ramp of floors (0.05, 0.3, 0.55 capped at the middle 0.5): each agent hands over into a stage whose
+    # every episode then fails, and falls to its own floor.
+    for stages, eta, expected in (([5, 5, 0, 0], [0.1, 0.6, 0.6, 1.0], [0.05, 0.6, 0.6, 0.95]),
+                                  ([5, 5, 5, 0], [0.6, 0.35, 0.6, 1.0], [0.6, 0.3, 0.6, 0.95]),
+                                  ([5, 5, 5, 5], [0.6, 0.6, 0.55, 1.0], [0.6, 0.6, 0.5, 0.95])):
+        np.testing.assert_allclose(move(eta, stages, 0, gate=[True] * 4, rule="trusted", floor_step=0.25),
+                                   expected, rtol=1e-6)
+        np.testing.assert_allclose(move(eta, stages, 0, up_rate=0.0, floor_step=0.25), expected, rtol=1e-6)
     with pytest.raises(ValueError, match="needs gate"):
         move([0.5, 1.0], [5, 5], 0, rule="gated")
 
@@ -401,10 +410,13 @@ def test_outcome_rule_fields_are_validated_and_reach_the_config_from_the_cli():
     from ccp_jax.train import Args, config_from_args
 
     config = config_from_args(tyro.cli(Args, args=["--preset", "tiny", "--eta", "auto", "--eta-auto-rule", "outcomes",
-                                                   "--eta-auto-rate", "0.1", "--eta-auto-up-rate", "0"]))
+                                                   "--eta-auto-rate", "0.1", "--eta-auto-up-rate", "0",
+                                                   "--eta-auto-floor-step", "0.25"]))
     assert (config.eta_auto_rule, config.eta_auto_rate, config.eta_auto_up_rate) == ("outcomes", 0.1, 0.0)
+    assert config.eta_auto_floor_step == 0.25
     assert make_config("tiny").eta_auto_rule == "ranges"
     for field, value in (("eta_auto_rule", "returns"), ("eta_auto_rate", 0.0), ("eta_auto_rate", 1.5),
-                         ("eta_auto_rate", float("nan")), ("eta_auto_up_rate", -0.1)):
+                         ("eta_auto_rate", float("nan")), ("eta_auto_up_rate", -0.1), ("eta_auto_floor_step", -0.1),
+                         ("eta_auto_floor_step", float("inf"))):
         with pytest.raises(ConfigError, match=f"^{field}:"):
             make_config("tiny", **{field: value})
