@@ -338,6 +338,9 @@ class Config:
             raise ConfigError("eta_auto_up_rate", f"must be in [0, 1] (or None: eta_auto_rate), got {self.eta_auto_up_rate}")
         if not (math.isfinite(self.eta_auto_floor_step) and 0.0 <= self.eta_auto_floor_step <= 1.0):
             raise ConfigError("eta_auto_floor_step", f"must be in [0, 1], got {self.eta_auto_floor_step}")
+        if self.eta_auto_floor_step and self.eta_auto_rule not in OUTCOME_RULES:
+            raise ConfigError("eta_auto_floor_step", f"bounds the outcome rules {OUTCOME_RULES}; the rule "
+                              f"{self.eta_auto_rule!r} clips η* to eta_auto_range instead")
         lo, hi = self.eta_auto_range
         if not 0.0 <= lo <= hi <= 1.0:
             raise ConfigError("eta_auto_range", f"must satisfy 0 <= low <= high <= 1, got {self.eta_auto_range}")

@@ -414,6 +414,8 @@ def test_outcome_rule_fields_are_validated_and_reach_the_config_from_the_cli():
                                                    "--eta-auto-floor-step", "0.25"]))
     assert (config.eta_auto_rule, config.eta_auto_rate, config.eta_auto_up_rate) == ("outcomes", 0.1, 0.0)
     assert config.eta_auto_floor_step == 0.25
+    with pytest.raises(ConfigError, match="^eta_auto_floor_step: bounds the outcome rules"):
+        make_config("tiny", eta_auto_floor_step=0.25)  # the default rule, "ranges", has no floors
     assert make_config("tiny").eta_auto_rule == "ranges"
     for field, value in (("eta_auto_rule", "returns"), ("eta_auto_rate", 0.0), ("eta_auto_rate", 1.5),
                          ("eta_auto_rate", float("nan")), ("eta_auto_up_rate", -0.1), ("eta_auto_floor_step", -0.1),
