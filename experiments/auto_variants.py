@@ -3,7 +3,8 @@
     python experiments/auto_variants.py    # -> results/table1_cpu_forward_slide/auto_variants.png
 
 Draws runs already trained (RESULTS.md, "`auto` weighing the next critic κ times", "`auto`
-following where the episodes fail", "`auto` on peg in hole" and the gated and trusted rules); each
+following where the episodes fail", "`auto` on peg in hole", the gated and trusted rules and, on 4 rooms,
+trusted with `--eta-auto-floor-step 0.25`); each
 line is the mean ± std over the seeds of its folders (six per maze, three on peg). The maze panels
 draw success; the peg panel draws the grasp (the fraction of evaluations reaching stage 2), since no
 peg run inserts at this budget.
@@ -39,7 +40,8 @@ PANELS = {
                ("auto, κ = 4", ["csac_auto_k4"], None),
                ("auto, outcomes down-only", ["csac_auto_outcomes_down"], None),
                ("auto, gated", ["csac_auto_gated"], None),
-               ("auto, trusted", ["csac_auto_trusted"], None)]),
+               ("auto, trusted", ["csac_auto_trusted"], None),
+               ("auto, trusted, floors 0.05 0.3 0.5", ["csac_auto_floorramp"], None)]),
     # Peg has no robot: its sweep is the one of sessions 10-12 (results/table1_cpu).
     "peg": (RESULTS / "table1_cpu" / "peg", STAGE2,
             [("best swept for the grasp, η = 0.9", ["csac_etas_0.9"], (0.9, 1.0)),
