@@ -369,6 +369,18 @@ def test_outcome_rule_moves_eta_against_hand_values():
         move([0.5, 1.0], [5, 5], 0, rule="gated")
 
 
+def test_the_floor_step_reaches_the_outcome_rule(monkeypatch):
+    """`eta_auto_floor_step` is what the epoch's `outcome_eta` receives (traced only, nothing compiled)."""
+    from ccp_jax import trainer as trainer_module
+
+    seen, real = [], trainer_module.outcome_eta
+    monkeypatch.setattr(trainer_module, "outcome_eta", lambda *a, **k: seen.append(a[8]) or real(*a, **k))
+    config = make_config("tiny", rooms=3, etas=(("auto",),), eta_auto_rule="trusted", eta_auto_floor_step=0.25)
+    run = trainer_module.make_train(config, Line(3, config.max_episode_steps))
+    jax.eval_shape(run.train_step, jax.eval_shape(run.init, 0), jnp.full((3,), jnp.nan))
+    assert seen == [0.25]
+
+
 def test_successor_succeeded_looks_two_stages_ahead():
     from ccp_jax.trainer import successor_succeeded
 
