@@ -185,9 +185,23 @@ def config_from_args(args: Args, base: Optional[Config] = None) -> Config:
     if ":" in fields.get("env", ""):  # a user's env decides its own number of stages, once it is checked
         fields["rooms"] = user_env(fields["env"], check=True).num_stages
     config = make_config("paper", **fields)
+    if args.eta_per_agent is not None:
+        check_per_agent_lengths(config)
     if config.algo == "tp":  # the primitives' run must exist and match, before anything compiles
         primitives_config(config)
     return config
+
+
+def check_per_agent_lengths(config: Config) -> None:
+    """`--eta-per-agent` vectors give every cooperative agent a value. `Config` reads a 1-value vector as a
+    shared ratio; from this flag, with more than one cooperative agent, it is a slip (e.g. a space for a comma)."""
+    n = config.num_agents
+    for eta in config.etas:
+        if len(eta) == 1 and n > 2:
+            example = ",".join([outputs.eta_text([eta[0]])] * (n - 1))
+            raise ConfigError("eta_per_agent", f"ratio vector {outputs.eta_text(eta)} has 1 value; {n} agents need "
+                              f"{n - 1} values, comma-separated (e.g. {example}); for one ratio shared by every "
+                              "agent use --eta")
 
 
 def prepare_out(out: Optional[Path], config: Config) -> Path:
