@@ -182,6 +182,8 @@ def config_from_args(args: Args, base: Optional[Config] = None) -> Config:
     if args.primitives is not None:  # absolute, so a resumed run finds it from any folder
         explicit["primitives"] = str(args.primitives.resolve())
     fields.update(explicit)
+    if args.rooms is not None and fields.get("env", "maze") != "maze":  # else silently replaced by the env's stages
+        raise ConfigError("rooms", f"--rooms sets the maze's number of rooms; env {fields['env']!r} has its own stages")
     if ":" in fields.get("env", ""):  # a user's env decides its own number of stages, once it is checked
         fields["rooms"] = user_env(fields["env"], check=True).num_stages
     config = make_config("paper", **fields)

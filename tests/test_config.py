@@ -82,6 +82,9 @@ def test_cli_arguments_resolve():
     with pytest.raises(ConfigError, match="^eta_per_agent: ratio vector 0.1 has 1 value; 3 agents need 2 values"):
         config_from_args(Args(rooms=3, eta_per_agent=("0.1", "0.5"), preset="tiny"))  # a space for a comma
     assert config_from_args(Args(rooms=2, eta_per_agent=("0.1",), preset="tiny")).etas == ((0.1,),)
+    with pytest.raises(ConfigError, match="^rooms: --rooms sets the maze's number of rooms; env 'peg'"):
+        config_from_args(Args(env="peg", rooms=3, preset="tiny"))
+    assert config_from_args(Args(env="peg", preset="tiny")).num_stages == 2
     with pytest.raises(ConfigError, match="^seeds:"):
         config_from_args(Args(seeds=0, preset="tiny"))
     with pytest.raises(ConfigError, match="^eta:"):
