@@ -64,7 +64,7 @@ def main(argv: Optional[Sequence[str]] = None) -> list[dict]:
     args = parser.parse_args(argv)
     try:
         rows = evaluate_run(args.run_dir, args.episodes, args.stochastic, args.epoch, args.seed)
-    except (ValueError, FileNotFoundError) as err:
+    except ValueError as err:
         parser.exit(2, f"error: {err}\n")
     mode = "stochastic" if args.stochastic else "deterministic"
     print(f"{args.episodes} {mode} episodes per member, {args.run_dir}\n\n{table(rows)}")

@@ -9,7 +9,7 @@ from typing import Any, Iterable
 
 import numpy as np
 
-from ccp_jax.config import Config
+from ccp_jax.config import Config, ConfigError
 
 FINAL_WINDOW = 10  # reported success = mean over the last 10 epochs (SPEC §3)
 # A critic above this many times `Config.value_bound` has diverged: its entropy bonus adds at most
@@ -32,9 +32,16 @@ def write_json(path: Path, obj: Any) -> None:
     os.replace(tmp, path)
 
 
-def read_config(run_dir: Path) -> Config:
-    """The Config a run folder's config.json holds (FileNotFoundError without one)."""
-    return Config.from_dict(json.loads((Path(run_dir) / "config.json").read_text()))
+def read_config(run_dir: Path, field: str = "run_dir") -> Config:
+    """The Config a run folder's config.json holds; a ConfigError naming `field` (the argument that gave the
+    folder) where it holds none or an unreadable one."""
+    path = Path(run_dir) / "config.json"
+    try:
+        return Config.from_dict(json.loads(path.read_text()))
+    except FileNotFoundError:
+        raise ConfigError(field, f"{run_dir} holds no run (no config.json)") from None
+    except (json.JSONDecodeError, TypeError) as err:
+        raise ConfigError(field, f"{path} is unreadable: {err}") from None
 
 
 def eval_fields(ev, member: int) -> dict:

@@ -71,8 +71,8 @@ def load_curves(run_dirs: Sequence[str | Path], metric: str = "success_rate") ->
     groups: dict[Group, list[Series]] = defaultdict(list)
     seen: dict[tuple[Group, int], tuple[Path, Config]] = {}
     for run_dir in map(Path, run_dirs):
-        config = json.loads((run_dir / "config.json").read_text())
-        settings = Config.from_dict(config)  # a field an older run's file lacks compares as its default
+        settings = outputs.read_config(run_dir)  # a field an older run's file lacks compares as its default
+        config = settings.to_dict()
         members: dict[int, list[dict]] = defaultdict(list)
         for row in outputs.read_rows(run_dir / "metrics.jsonl"):
             members[row["member"]].append(row)

@@ -8,7 +8,6 @@ grid member is one call of the compiled, vmapped `train_step`.
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 import time
 from pathlib import Path
@@ -231,12 +230,7 @@ def planned_grid_size(args: Args) -> Optional[int]:
 def resume_config(args: Args) -> Config:
     """The resumed run's config; arguments given again must agree with it (total_steps may grow)."""
     run_dir = args.resume
-    try:
-        saved = outputs.read_config(run_dir)
-    except FileNotFoundError:
-        raise ConfigError("resume", f"{run_dir} holds no run (no config.json)") from None
-    except (json.JSONDecodeError, TypeError) as err:
-        raise ConfigError("resume", f"{run_dir / 'config.json'} is unreadable: {err}") from None
+    saved = outputs.read_config(run_dir, field="resume")
     if args.out is not None and args.out != run_dir:
         raise ConfigError("out", f"--out {args.out} differs from --resume {run_dir}; give only --resume")
     config = config_from_args(args, base=saved)

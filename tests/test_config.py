@@ -120,3 +120,18 @@ def test_a_config_json_from_before_the_kinematics_fields_reads_as_the_robot_it_t
     assert (written.maze_reverse, written.maze_slide) == (False, True)
     old_peg = {k: v for k, v in make_config("tiny", env="peg").to_dict().items() if k not in ("maze_reverse", "maze_slide")}
     assert Config.from_dict(old_peg) == make_config("tiny", env="peg")  # other envs have no kinematics to recall
+
+
+def test_a_folder_without_a_readable_run_is_named_by_the_argument_that_gave_it(tmp_path, capsys):
+    from ccp_jax import evaluate, outputs, plot
+
+    with pytest.raises(ConfigError, match=f"^run_dir: {tmp_path} holds no run"):
+        outputs.read_config(tmp_path)
+    with pytest.raises(SystemExit):
+        evaluate.main([str(tmp_path)])
+    with pytest.raises(SystemExit):
+        plot.main([str(tmp_path)])
+    assert capsys.readouterr().err.splitlines() == [f"error: run_dir: {tmp_path} holds no run (no config.json)"] * 2
+    (tmp_path / "config.json").write_text("{not json")
+    with pytest.raises(ConfigError, match="^resume: .*config.json is unreadable"):
+        outputs.read_config(tmp_path, field="resume")

@@ -8,7 +8,6 @@ checked before anything compiles and fails with a `ConfigError` on the field
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -31,12 +30,12 @@ def primitives_config(config: Config) -> Config:
         raise ConfigError("primitives", "--algo tp needs frozen primitives: train them first with --algo naive "
                                         "(same env and rooms), then pass that run folder as --primitives DIR")
     run_dir = Path(config.primitives)
-    try:
-        saved = outputs.read_config(run_dir)
-    except FileNotFoundError:
+    if not (run_dir / "config.json").exists():
         raise ConfigError("primitives", f"{run_dir} holds no run (no config.json); train the primitives with "
-                                        "--algo naive --out DIR first") from None
-    except (json.JSONDecodeError, TypeError, ConfigError) as err:
+                                        "--algo naive --out DIR first")
+    try:
+        saved = outputs.read_config(run_dir, field="primitives")
+    except ConfigError as err:  # a config.json that reads but does not validate names its own field
         raise ConfigError("primitives", f"{run_dir / 'config.json'} is unreadable: {err}") from None
     if saved.algo != "naive":
         raise ConfigError("primitives", f"{run_dir} is a {saved.algo!r} run; primitives come from an --algo naive run")
