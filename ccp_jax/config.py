@@ -208,10 +208,13 @@ class Config:
         """Per-agent ratios of length `num_agents`.
 
         A single value is shared by the cooperative agents; N−1 values give one
-        per cooperative agent. The last agent gets η = 1 (it has no next critic).
+        per cooperative agent. The last agent gets η = 1 (it has no next critic),
+        and so does every agent of the algorithms that do not cooperate.
         """
-        eta = tuple(x if x == AUTO else float(x) for x in eta)
         n = self.num_agents
+        if self.algo != "csac":  # no actor reads a ratio: record the η = 1 every agent trains with
+            return (1.0,) * n
+        eta = tuple(x if x == AUTO else float(x) for x in eta)
         if len(eta) == 1:
             eta = eta * max(n - 1, 1)
         if len(eta) == n - 1:
@@ -299,6 +302,10 @@ class Config:
         if not self.etas:
             raise ConfigError("eta", "at least one ratio is needed")
         n = self.num_agents
+        if self.algo != "csac" and len(self.etas) > 1:
+            raise ConfigError("eta", f"--algo {self.algo} trains every agent on its own critic alone (η = 1): a grid "
+                                     f"of ratios would train identical runs; leave --eta out "
+                                     f"(got {[list(e) for e in self.etas]})")
         for eta in self.etas:
             if len(eta) not in (1, n - 1, n) or (len(eta) == n and n > 1 and not self.normalise_last):
                 allowed = "1 value" if n <= 2 else f"1 value or {n - 1} values (one per cooperative agent)"

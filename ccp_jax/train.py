@@ -174,8 +174,11 @@ def config_from_args(args: Args, base: Optional[Config] = None) -> Config:
     explicit = {k: getattr(args, k) for k in ("env", "rooms", "algo") + OVERRIDES if getattr(args, k) is not None}
     if args.eta_per_agent is not None:
         explicit["etas"] = tuple(parse_eta_vector(t) for t in args.eta_per_agent)
-    elif args.eta is not None or base is None:
-        explicit["etas"] = tuple((parse_eta(x),) for x in (args.eta or DEFAULT_ETA))
+    elif args.eta is not None:
+        explicit["etas"] = tuple((parse_eta(x),) for x in args.eta)
+    elif base is None:  # only CSAC's actors read a ratio: the others' runs record the η = 1 they train with
+        cooperative = explicit.get("algo", fields.get("algo", "csac")) == "csac"
+        explicit["etas"] = tuple((parse_eta(x),) for x in (DEFAULT_ETA if cooperative else ("1",)))
     if args.seeds is not None or base is None:
         explicit["seeds"] = tuple(range(args.first_seed, args.first_seed + (args.seeds or 1)))
     if args.primitives is not None:  # absolute, so a resumed run finds it from any folder
@@ -186,6 +189,9 @@ def config_from_args(args: Args, base: Optional[Config] = None) -> Config:
     if ":" in fields.get("env", ""):  # a user's env decides its own number of stages, once it is checked
         fields["rooms"] = user_env(fields["env"], check=True).num_stages
     config = make_config("paper", **fields)
+    if config.algo != "csac" and (args.eta is not None or args.eta_per_agent is not None):
+        raise ConfigError("eta", f"--algo {config.algo} trains every agent on its own critic alone (η = 1): a ratio "
+                                 "changes nothing; leave --eta and --eta-per-agent out")
     if args.eta_per_agent is not None:
         check_per_agent_lengths(config)
     if config.algo == "tp":  # the primitives' run must exist and match, before anything compiles
