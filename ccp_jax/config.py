@@ -356,8 +356,6 @@ class Config:
         if self.primitives is None:
             raise ConfigError("primitives", "--algo tp needs frozen primitives: train them first with --algo naive "
                                             "(same env and rooms), then pass that run folder as --primitives DIR")
-        if len(self.etas) != 1:
-            raise ConfigError("eta", "tp has no cooperative ratio; give no --eta grid")
         if self.train_cycles_per_epoch != 1:
             raise ConfigError("train_cycles_per_epoch", "tp collects and updates once per epoch; it must be 1")
         for name in ("tp_max_steps", "tp_ppo_epochs", "tp_minibatch", "tp_prox_updates", "tp_buffer_size",
