@@ -208,13 +208,10 @@ class Config:
         """Per-agent ratios of length `num_agents`.
 
         A single value is shared by the cooperative agents; N−1 values give one
-        per cooperative agent. The last agent gets η = 1 (it has no next critic),
-        and so does every agent of the algorithms that do not cooperate.
+        per cooperative agent. The last agent gets η = 1 (it has no next critic).
         """
-        n = self.num_agents
-        if self.algo != "csac":  # no actor reads a ratio: record the η = 1 every agent trains with
-            return (1.0,) * n
         eta = tuple(x if x == AUTO else float(x) for x in eta)
+        n = self.num_agents
         if len(eta) == 1:
             eta = eta * max(n - 1, 1)
         if len(eta) == n - 1:

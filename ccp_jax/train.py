@@ -174,11 +174,8 @@ def config_from_args(args: Args, base: Optional[Config] = None) -> Config:
     explicit = {k: getattr(args, k) for k in ("env", "rooms", "algo") + OVERRIDES if getattr(args, k) is not None}
     if args.eta_per_agent is not None:
         explicit["etas"] = tuple(parse_eta_vector(t) for t in args.eta_per_agent)
-    elif args.eta is not None:
-        explicit["etas"] = tuple((parse_eta(x),) for x in args.eta)
-    elif base is None:  # only CSAC's actors read a ratio: the others' runs record the η = 1 they train with
-        cooperative = explicit.get("algo", fields.get("algo", "csac")) == "csac"
-        explicit["etas"] = tuple((parse_eta(x),) for x in (DEFAULT_ETA if cooperative else ("1",)))
+    elif args.eta is not None or base is None:
+        explicit["etas"] = tuple((parse_eta(x),) for x in (args.eta or DEFAULT_ETA))
     if args.seeds is not None or base is None:
         explicit["seeds"] = tuple(range(args.first_seed, args.first_seed + (args.seeds or 1)))
     if args.primitives is not None:  # absolute, so a resumed run finds it from any folder

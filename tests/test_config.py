@@ -137,10 +137,8 @@ def test_a_folder_without_a_readable_run_is_named_by_the_argument_that_gave_it(t
         outputs.read_config(tmp_path, field="resume")
 
 
-def test_algorithms_without_cooperation_train_and_record_eta_1():
-    naive = config_from_args(Args(algo="naive", rooms=3, preset="tiny"))
-    assert naive.etas == ((1.0,),) and naive.grid == [((1.0, 1.0, 1.0), 0)]
-    assert make_config("tiny", algo="naive", rooms=3).grid[0][0] == (1.0, 1.0, 1.0)  # the library default 0.1 too
+def test_algorithms_without_cooperation_refuse_ratios():
+    assert config_from_args(Args(algo="naive", rooms=3, preset="tiny")).grid_size == 1
     with pytest.raises(ConfigError, match="^eta: --algo sac trains every agent on its own critic alone"):
         config_from_args(Args(algo="sac", eta=("0.1", "0.5"), preset="tiny"))
     with pytest.raises(ConfigError, match="^eta: --algo naive .* a grid of ratios would train identical runs"):
