@@ -139,6 +139,17 @@ def read_rows(path: Path) -> list[dict]:
     return [json.loads(line) for line in lines if line.strip()]
 
 
+def complete_epochs(rows: list[dict], grid_size: int) -> int:
+    """The last epoch E such that each of the epochs 1..E has a row for every one of the `grid_size` members."""
+    members = {}
+    for r in rows:
+        members.setdefault(r["epoch"], set()).add(r["member"])
+    epoch = 0
+    while len(members.get(epoch + 1, ())) == grid_size:
+        epoch += 1
+    return epoch
+
+
 def summarise(config: Config, rows: list[dict], wall_s: float | None = None) -> dict:
     """Per member: final success (mean of the last `FINAL_WINDOW` epochs), learning milestones, critic peaks."""
     members = []

@@ -275,10 +275,18 @@ def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_e
     metrics_path = out / "metrics.jsonl"
     start = time.time()
     if resume:
-        first_epoch, state = checkpoint.restore(mngr, trainer.abstract_state(seed), grid_size=config.grid_size)
+        rows = outputs.read_rows(metrics_path)
+        # Rows are written before each checkpoint; a checkpoint past the rows that survived (a row cut by a
+        # crash) would leave a hole in metrics.jsonl, so resume from the latest one they cover and train the
+        # later epochs again (deterministically, into the same checkpoints).
+        covered = [s for s in mngr.all_steps() if s <= outputs.complete_epochs(rows, config.grid_size)]
+        for later in (s for s in mngr.all_steps() if covered and s > max(covered)):
+            mngr.delete(later)
+        first_epoch, state = checkpoint.restore(mngr, trainer.abstract_state(seed), grid_size=config.grid_size,
+                                                epoch=max(covered) if covered else None)
         if first_epoch > config.num_epochs:
             raise ConfigError("total_steps", f"the run already has {first_epoch} epochs, more than {config.num_epochs}")
-        rows = [r for r in outputs.read_rows(metrics_path) if r["epoch"] <= first_epoch]
+        rows = [r for r in rows if r["epoch"] <= first_epoch]
         if lead:
             outputs.write_rows(metrics_path, rows)
     else:

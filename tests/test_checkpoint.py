@@ -66,6 +66,16 @@ def test_resume_reproduces_the_uninterrupted_run(uninterrupted, interrupted):
         np.testing.assert_array_equal(x, y)
 
 
+def test_a_row_cut_by_a_crash_is_trained_again_not_left_out(tmp_path, uninterrupted):
+    out = tmp_path / "run"
+    shutil.copytree(uninterrupted, out)  # checkpoints of epochs 2 and 3
+    text = (out / "metrics.jsonl").read_text()
+    (out / "metrics.jsonl").write_text(text[: text.rindex("{") + 40])  # epoch 3's last row cut mid-write
+    main(["--resume", str(out), "--no-progress"])
+    assert _rows(out) == _rows(uninterrupted)  # from checkpoint 2, epoch 3 trained again
+    assert _final_state(out)[0] == 3
+
+
 def test_resume_can_extend_the_budget(tmp_path, uninterrupted):
     out = tmp_path / "run"
     shutil.copytree(uninterrupted, out)
