@@ -133,10 +133,19 @@ def write_rows(path: Path, rows: Iterable[dict]) -> None:
     os.replace(tmp, path)
 
 
-def read_rows(path: Path) -> list[dict]:
-    """The rows of a jsonl file; a last line without its newline is a row still being written and is left out."""
-    lines = Path(path).read_text().split("\n")[:-1]
-    return [json.loads(line) for line in lines if line.strip()]
+def read_rows(path: Path, field: str = "run_dir") -> list[dict]:
+    """The rows of a jsonl file; a last line without its newline is a row still being written and is left out.
+
+    A damaged complete line is a ConfigError naming `field` (the argument that gave the folder) and the line."""
+    rows = []
+    for number, line in enumerate(Path(path).read_text().split("\n")[:-1], start=1):
+        if not line.strip():
+            continue
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError as err:
+            raise ConfigError(field, f"{path} line {number} is not a JSON row ({err}); repair or remove it") from None
+    return rows
 
 
 def complete_epochs(rows: list[dict], grid_size: int) -> int:

@@ -266,16 +266,16 @@ def run(config: Config, out: Path, progress: bool = True, resume: bool = False,
 
 def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_every: int,
            sinks: loggers.Loggers, members_at_once: Optional[int], devices: list) -> dict:
+    metrics_path = out / "metrics.jsonl"
+    rows = outputs.read_rows(metrics_path, field="resume") if resume else []  # a damaged file stops us before tracing
     env = make_env(config)
     make = make_tp_grid if config.algo == "tp" else make_grid_train
     trainer = make(config, env, devices, members_at_once=members_at_once)
     eta, seed = config.grid_arrays()
     lead = jax.process_index() == 0  # with several hosts, one writes the files; all save checkpoints
     mngr = checkpoint.manager(out)
-    metrics_path = out / "metrics.jsonl"
     start = time.time()
     if resume:
-        rows = outputs.read_rows(metrics_path)
         # Rows are written before each checkpoint; a checkpoint past the rows that survived (a row cut by a
         # crash) would leave a hole in metrics.jsonl, so resume from the latest one they cover and train the
         # later epochs again (deterministically, into the same checkpoints).
@@ -290,7 +290,7 @@ def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_e
         if lead:
             outputs.write_rows(metrics_path, rows)
     else:
-        first_epoch, state, rows = 0, trainer.init(seed), []
+        first_epoch, state = 0, trainer.init(seed)
     start -= sum(r["epoch_wall_s"] for r in rows if r["member"] == 0)  # a resumed run's earlier epochs count too
     if lead:
         outputs.write_json(out / "config.json", config.to_dict())

@@ -76,6 +76,18 @@ def test_a_row_cut_by_a_crash_is_trained_again_not_left_out(tmp_path, uninterrup
     assert _final_state(out)[0] == 3
 
 
+def test_a_damaged_row_is_refused_and_nothing_changes(tmp_path, uninterrupted):
+    out = tmp_path / "run"
+    shutil.copytree(uninterrupted, out)
+    lines = (out / "metrics.jsonl").read_text().splitlines(keepends=True)
+    lines[2] = lines[2][:30] + "\n"
+    (out / "metrics.jsonl").write_text(damaged := "".join(lines))
+    with pytest.raises(ConfigError, match="^resume: .*metrics.jsonl line 3 is not a JSON row"):
+        main(["--resume", str(out), "--no-progress"])
+    assert (out / "metrics.jsonl").read_text() == damaged
+    assert sorted(p.name for p in (out / "checkpoints").iterdir()) == ["2", "3"]
+
+
 def test_resume_can_extend_the_budget(tmp_path, uninterrupted):
     out = tmp_path / "run"
     shutil.copytree(uninterrupted, out)
