@@ -307,10 +307,13 @@ class Config:
             if len(eta) not in (1, n - 1, n) or (len(eta) == n and n > 1 and not self.normalise_last):
                 allowed = "1 value" if n <= 2 else f"1 value or {n - 1} values (one per cooperative agent)"
                 raise ConfigError("eta_per_agent", f"ratio vector {tuple(eta)} has {len(eta)} values; "
-                                  f"{n} agents need {allowed}")
+                                  f"{n} agent{'s' if n > 1 else ''} need{'' if n > 1 else 's'} {allowed}")
             for x in eta:
                 if x != AUTO and not (isinstance(x, (int, float)) and 0.0 <= float(x) <= 1.0):
                     raise ConfigError("eta", f"ratios must be numbers in [0, 1] or {AUTO!r}, got {x!r}")
+        vectors = [self.eta_vector(e) for e in self.etas]
+        if len(set(vectors)) != len(vectors):  # with the same seeds, a repeated ratio trains identical runs
+            raise ConfigError("eta", f"ratios must be distinct, got {[list(e) for e in self.etas]}")
         if self.next_action not in NEXT_ACTIONS:
             raise ConfigError("next_action", f"unknown rule {self.next_action!r}; choose one of {NEXT_ACTIONS}")
         if self.tanh_log_prob not in TANH_LOG_PROBS:

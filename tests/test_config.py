@@ -85,6 +85,10 @@ def test_cli_arguments_resolve():
     with pytest.raises(ConfigError, match="^rooms: --rooms sets the maze's number of rooms; env 'peg'"):
         config_from_args(Args(env="peg", rooms=3, preset="tiny"))
     assert config_from_args(Args(env="peg", preset="tiny")).num_stages == 2
+    with pytest.raises(ConfigError, match="^eta: ratios must be distinct"):
+        config_from_args(Args(eta=("0.1", "0.10"), preset="tiny"))
+    with pytest.raises(ConfigError, match="^eta: ratios must be distinct"):
+        make_config("tiny", rooms=3, etas=((0.1,), (0.1, 0.1)))  # the same per-agent vector
     with pytest.raises(ConfigError, match="^seeds:"):
         config_from_args(Args(seeds=0, preset="tiny"))
     with pytest.raises(ConfigError, match="^eta:"):
