@@ -1,13 +1,14 @@
 """Issue 9's `auto` variants against the best fixed ratios, one panel per domain, on the same seeds.
 
-    python experiments/auto_variants.py    # -> results/table1_cpu_forward_slide/auto_variants.png
+    python experiments/auto_variants.py    # -> results/table1_cpu_forward_slide/auto_variants.png, trusted_every_seed.png
 
 Draws runs already trained (RESULTS.md, "`auto` weighing the next critic κ times", "`auto`
 following where the episodes fail", "`auto` on peg in hole", the gated and trusted rules and, on 4 rooms,
 trusted with `--eta-auto-floor-step 0.25`); each
 line is the mean ± std over the seeds of its folders (six per maze, three on peg). The maze panels
 draw success; the peg panel draws the grasp (the fraction of evaluations reaching stage 2), since no
-peg run inserts at this budget.
+peg run inserts at this budget. trusted_every_seed.png draws the trusted rule against the best shared
+ratio over every seed both ran (2 rooms 12, 3 rooms 21, 4 rooms 12; and the 4-room ramp, which beats both).
 """
 from __future__ import annotations
 
@@ -53,9 +54,30 @@ PANELS = {
 }
 
 
-def panel(domain: str) -> dict:
+# Trusted against the best shared ratio on every seed both have (session 42).
+EVERY_SEED = {
+    "maze2": (ROOT / "maze2", "success_rate",
+              [("best swept, η = 0.1", ["csac", "csac_fresh_seeds", "csac_trusted_0.1_seeds6to11"], (0.1, 1.0)),
+               ("auto, trusted", ["csac_auto_trusted", "csac_trusted_0.1_seeds6to11"], ("auto", 1.0))]),
+    "maze3": (ROOT / "maze3", "success_rate",
+              [("best swept, η = 0.3", ["csac", "csac_fresh_seeds", "csac_ramp_and_0.3_seeds6to8",
+                                        "csac_trusted_0.3_seeds9to14", "csac_trusted_0.3_seeds21to26"], (0.3, 0.3, 1.0)),
+               ("auto, trusted", ["csac_auto_trusted_seeds0to2", "csac_auto_trusted_seeds3to8",
+                                  "csac_trusted_0.3_seeds9to14", "csac_trusted_0.3_seeds21to26"],
+                ("auto", "auto", 1.0))]),
+    "maze4": (ROOT / "maze4", "success_rate",
+              [("best swept, η = 0.5", ["csac_etas_0.5-0.7", "csac_fresh_seeds", "csac_ramp_and_0.5_seeds6to8",
+                                        "csac_trusted_0.5_ramp_seeds9to11"], (0.5, 0.5, 0.5, 1.0)),
+               ("ramp 0.1, 0.3, 0.5", ["csac_ramp", "csac_ramp_fresh_seeds", "csac_ramp_and_0.5_seeds6to8",
+                                       "csac_trusted_0.5_ramp_seeds9to11"], (0.1, 0.3, 0.5, 1.0)),
+               ("auto, trusted", ["csac_auto_trusted", "csac_auto_trusted_seeds6to8",
+                                  "csac_trusted_0.5_ramp_seeds9to11"], ("auto", "auto", "auto", 1.0))]),
+}
+
+
+def panel(domain: str, panels: dict = PANELS) -> dict:
     """Curve groups of one domain, keyed (task, legend, ratios) so `plot.curves` labels them by legend."""
-    folder, metric, variants = PANELS[domain]
+    folder, metric, variants = panels[domain]
     groups = {}
     for legend, folders, keep in variants:
         for (task, _, eta), series in plot.load_curves([folder / f for f in folders], metric).items():
@@ -64,11 +86,13 @@ def panel(domain: str) -> dict:
     return groups
 
 
-def main() -> Path:
-    path = draw_panels({d: panel(d) for d in PANELS}, ROOT / "auto_variants.png",
-                       {d: metric for d, (_, metric, _) in PANELS.items()})
-    print(f"wrote {path}")
-    return path
+def main() -> list[Path]:
+    paths = [draw_panels({d: panel(d, panels) for d in panels}, ROOT / name,
+                         {d: metric for d, (_, metric, _) in panels.items()})
+             for panels, name in ((PANELS, "auto_variants.png"), (EVERY_SEED, "trusted_every_seed.png"))]
+    for path in paths:
+        print(f"wrote {path}")
+    return paths
 
 
 if __name__ == "__main__":
