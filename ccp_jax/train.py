@@ -280,12 +280,12 @@ def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_e
         # crash) would leave a hole in metrics.jsonl, so resume from the latest one they cover and train the
         # later epochs again (deterministically, into the same checkpoints).
         covered = [s for s in mngr.all_steps() if s <= outputs.complete_epochs(rows, config.grid_size)]
-        for later in (s for s in mngr.all_steps() if covered and s > max(covered)):
-            mngr.delete(later)
         first_epoch, state = checkpoint.restore(mngr, trainer.abstract_state(seed), grid_size=config.grid_size,
                                                 epoch=max(covered) if covered else None)
         if first_epoch > config.num_epochs:
             raise ConfigError("total_steps", f"the run already has {first_epoch} epochs, more than {config.num_epochs}")
+        for later in [s for s in mngr.all_steps() if s > first_epoch]:  # only once the covered one restored
+            mngr.delete(later)
         rows = [r for r in rows if r["epoch"] <= first_epoch]
         if lead:
             outputs.write_rows(metrics_path, rows)
