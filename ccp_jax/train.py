@@ -236,11 +236,16 @@ def resume_config(args: Args) -> Config:
     saved = outputs.read_config(run_dir, field="resume")
     if args.out is not None and args.out != run_dir:
         raise ConfigError("out", f"--out {args.out} differs from --resume {run_dir}; give only --resume")
+
+    def refused(name: str, got) -> ConfigError:
+        return ConfigError(name, f"the run in {run_dir} was trained with {getattr(saved, name)!r}, got {got!r}; "
+                                 "start a new run to change it")
+
+    if args.algo is not None and args.algo != saved.algo:  # first: which ratios are valid depends on it
+        raise refused("algo", args.algo)
     config = config_from_args(args, base=saved)
     if changed := saved.differing(config, ignore=("total_steps",)):
-        name = changed[0]
-        raise ConfigError(name, f"the run in {run_dir} was trained with {getattr(saved, name)!r}, got "
-                                f"{getattr(config, name)!r}; start a new run to change it")
+        raise refused(changed[0], getattr(config, changed[0]))
     return config
 
 
