@@ -142,7 +142,9 @@ def test_a_folder_without_a_readable_run_is_named_by_the_argument_that_gave_it(t
 
 
 def test_algorithms_without_cooperation_refuse_ratios():
-    assert config_from_args(Args(algo="naive", rooms=3, preset="tiny")).grid_size == 1
+    assert config_from_args(Args(algo="naive", rooms=3, preset="tiny")).algo == "naive"  # no --eta: accepted
+    with pytest.raises(ConfigError, match="^eta: --algo naive trains every agent"):
+        config_from_args(Args(algo="naive", eta=("0.3",), preset="tiny"))  # one ratio: it would be ignored
     with pytest.raises(ConfigError, match="^eta: --algo sac trains every agent on its own critic alone"):
         config_from_args(Args(algo="sac", eta=("0.1", "0.5"), preset="tiny"))
     with pytest.raises(ConfigError, match="^eta: --algo naive .* a grid of ratios would train identical runs"):
