@@ -35,8 +35,8 @@ def new_figure(width: float = 6.4, height: float = 4.0) -> Figure:
     return fig
 
 
-def _task(config: dict) -> str:
-    return f"{config['env']}-{config['num_stages']}" if config["env"] == "maze" else config["env"]
+def _task(config: Config) -> str:
+    return f"{config.env}-{config.num_stages}" if config.env == "maze" else config.env
 
 
 def _value(row: dict, metric: str) -> Optional[float]:
@@ -72,7 +72,6 @@ def load_curves(run_dirs: Sequence[str | Path], metric: str = "success_rate") ->
     seen: dict[tuple[Group, int], tuple[Path, Config]] = {}
     for run_dir in map(Path, run_dirs):
         settings = outputs.read_config(run_dir)  # a field an older run's file lacks compares as its default
-        config = settings.to_dict()
         members: dict[int, list[dict]] = defaultdict(list)
         for row in outputs.read_rows(run_dir / "metrics.jsonl"):
             members[row["member"]].append(row)
@@ -81,7 +80,7 @@ def load_curves(run_dirs: Sequence[str | Path], metric: str = "success_rate") ->
             points = [(r["env_steps"], v) for r in rows if (v := _value(r, metric)) is not None]
             steps = np.asarray([s for s, _ in points], np.int64)
             values = np.asarray([v for _, v in points], np.float64)
-            group, seed = (_task(config), rows[0]["algo"], tuple(rows[0]["eta"])), rows[0]["seed"]
+            group, seed = (_task(settings), rows[0]["algo"], tuple(rows[0]["eta"])), rows[0]["seed"]
             if (group, seed) in seen:
                 refuse_to_pool(*seen[group, seed], run_dir, settings, f"{group_label(group)} seed {seed}",
                                "; give each run its own label (--labels)")

@@ -241,8 +241,12 @@ def resume_config(args: Args) -> Config:
         return ConfigError(name, f"the run in {run_dir} was trained with {getattr(saved, name)!r}, got {got!r}; "
                                  "start a new run to change it")
 
-    if args.algo is not None and args.algo != saved.algo:  # first: which ratios are valid depends on it
-        raise refused("algo", args.algo)
+    # Fields given again are compared before the config is built: a changed one (algo, rooms, env) can make the
+    # saved ratios invalid, and that error would not name what changed.
+    for name in ("env", "rooms", "algo") + OVERRIDES:
+        got = getattr(args, name)
+        if name != "total_steps" and got is not None and got != getattr(saved, name):
+            raise refused(name, got)
     config = config_from_args(args, base=saved)
     if changed := saved.differing(config, ignore=("total_steps",)):
         raise refused(changed[0], getattr(config, changed[0]))

@@ -149,3 +149,17 @@ def test_algorithms_without_cooperation_refuse_ratios():
         config_from_args(Args(algo="sac", eta=("0.1", "0.5"), preset="tiny"))
     with pytest.raises(ConfigError, match="^eta: --algo naive .* a grid of ratios would train identical runs"):
         make_config("tiny", algo="naive", etas=((0.1,), (0.5,)))
+
+
+def test_a_resume_that_changes_a_field_names_it_even_where_the_saved_ratios_no_longer_fit(tmp_path):
+    import json
+
+    from ccp_jax.train import resume_config
+
+    saved = make_config("tiny", rooms=3, etas=((0.1, 0.5),))
+    (tmp_path / "config.json").write_text(json.dumps(saved.to_dict()))
+    for args, field in ((Args(resume=tmp_path, rooms=4), "rooms"), (Args(resume=tmp_path, algo="naive"), "algo"),
+                        (Args(resume=tmp_path, env="peg"), "env")):
+        with pytest.raises(ConfigError, match=f"^{field}: the run in {tmp_path} was trained with"):
+            resume_config(args)
+    assert resume_config(Args(resume=tmp_path, total_steps=2 * saved.total_steps)).total_steps == 2 * saved.total_steps
