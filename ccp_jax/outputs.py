@@ -1,6 +1,11 @@
-"""The run folder's files (SPEC §6): config.json, metrics.jsonl, summary.json."""
+"""The run folder's files (SPEC §6): config.json, metrics.jsonl, summary.json.
+
+A finished run's metrics.jsonl may be compacted into metrics.jsonl.gz (`compact_metrics`); every reader
+goes through `read_rows` / `metrics_file`, which take either form.
+"""
 from __future__ import annotations
 
+import gzip
 import json
 import math
 import os
@@ -11,6 +16,8 @@ import numpy as np
 
 from ccp_jax.config import Config, ConfigError
 
+METRICS = "metrics.jsonl"
+COMPACTED = METRICS + ".gz"
 FINAL_WINDOW = 10  # reported success = mean over the last 10 epochs (SPEC §3)
 # A critic above this many times `Config.value_bound` has diverged: its entropy bonus adds at most
 # α |A| log 2 / (1 − γ) (no distribution on [−1, 1]^|A| has more entropy), under 9 bounds for α |A| ≤ 13.
@@ -133,12 +140,29 @@ def write_rows(path: Path, rows: Iterable[dict]) -> None:
     os.replace(tmp, path)
 
 
+def metrics_file(run_dir: Path) -> Path:
+    """A run folder's metrics: metrics.jsonl, or metrics.jsonl.gz where only the compacted form is there."""
+    raw = Path(run_dir) / METRICS
+    return raw if raw.exists() or not (compacted := raw.with_name(COMPACTED)).exists() else compacted
+
+
 def read_rows(path: Path, field: str = "run_dir") -> list[dict]:
-    """The rows of a jsonl file; a last line without its newline is a row still being written and is left out.
+    """The rows of a jsonl file (or of its gzip, `PATH.gz`, where PATH itself is not there); a last line without its
+    newline is a row still being written and is left out.
 
     A damaged complete line is a ConfigError naming `field` (the argument that gave the folder) and the line."""
+    path = Path(path)
+    if path.suffix != ".gz" and not path.exists() and (compacted := path.with_name(path.name + ".gz")).exists():
+        path = compacted
+    if path.suffix == ".gz":
+        try:
+            text = gzip.decompress(path.read_bytes()).decode()
+        except (OSError, EOFError, UnicodeDecodeError) as err:  # gzip.BadGzipFile is an OSError
+            raise ConfigError(field, f"{path} is not a readable gzip file ({err}); repair or restore it") from None
+    else:
+        text = path.read_text()
     rows = []
-    for number, line in enumerate(Path(path).read_text().split("\n")[:-1], start=1):
+    for number, line in enumerate(text.split("\n")[:-1], start=1):
         if not line.strip():
             continue
         try:
@@ -146,6 +170,81 @@ def read_rows(path: Path, field: str = "run_dir") -> list[dict]:
         except json.JSONDecodeError as err:
             raise ConfigError(field, f"{path} line {number} is not a JSON row ({err}); repair or remove it") from None
     return rows
+
+
+def _float32_shortest(x: Any) -> Any:
+    """`x` with every float that is exactly a float32 (the device's metrics) replaced by the shortest decimal that
+    reads back as that float32; other floats (wall times, fractions computed on the host) are kept as they are."""
+    if isinstance(x, float):
+        if math.isfinite(x):
+            with np.errstate(over="ignore"):
+                single = np.float32(x)
+            if float(single) == x:
+                short = float(np.format_float_scientific(single, unique=True))
+                if float(np.float32(short)) == x:
+                    return short
+        return x
+    if isinstance(x, dict):
+        return {k: _float32_shortest(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_float32_shortest(v) for v in x]
+    return x
+
+
+def _same_value(original: Any, back: Any) -> bool:
+    """Whether a compacted value gives the original back: a float32 one once read as a float32 (and widened
+    again), every other value exactly (same type, same keys in the same order)."""
+    if isinstance(original, float):
+        if not isinstance(back, float):
+            return False
+        if math.isnan(original):
+            return math.isnan(back)
+        return back == original or float(np.float32(back)) == original
+    if type(original) is not type(back):
+        return False
+    if isinstance(original, dict):
+        return list(original) == list(back) and all(_same_value(v, back[k]) for k, v in original.items())
+    if isinstance(original, list):
+        return len(original) == len(back) and all(_same_value(a, b) for a, b in zip(original, back))
+    return original == back
+
+
+def compact_metrics(run_dir: Path) -> tuple[int, int]:
+    """Rewrites a finished run's metrics.jsonl as metrics.jsonl.gz, about a seventh of the bytes; returns the
+    metrics' bytes (before, after).
+
+    Floats that are exactly float32 are written as their shortest float32 decimal (0.3 for 0.30000001192092896),
+    which reads back as the same float32; everything else is written as it was. Every value is checked against the
+    original before the raw file is deleted. The gzip has no name or time in it, so compacting the same rows again
+    gives the same bytes, and an already compacted folder is left as it is (a plain gzip is rewritten compactly).
+    Only a finished run (summary.json) is compacted: a running one still appends to metrics.jsonl.
+    """
+    run_dir = Path(run_dir)
+    if not (run_dir / "summary.json").exists():
+        raise ConfigError("run_dir", f"{run_dir} has no summary.json: only a finished run's metrics are compacted")
+    source = metrics_file(run_dir)
+    if not source.exists():
+        raise ConfigError("run_dir", f"{run_dir} holds no {METRICS} to compact")
+    data = source.read_bytes()
+    text = gzip.decompress(data).decode() if source.suffix == ".gz" else data.decode()
+    if text and not text.endswith("\n"):
+        raise ConfigError("run_dir", f"{source}'s last row has no newline (cut while written); repair it first")
+    rows = read_rows(source)
+    packed = gzip.compress("".join(json.dumps(_float32_shortest(r)) + "\n" for r in rows).encode(),
+                           compresslevel=9, mtime=0)
+    back = [json.loads(line) for line in gzip.decompress(packed).decode().splitlines()]
+    if len(back) != len(rows) or not all(_same_value(a, b) for a, b in zip(rows, back)):
+        raise RuntimeError(f"{source}: the compacted rows do not read back as the original ones; nothing changed")
+    target = run_dir / COMPACTED
+    if source != target or packed != data:
+        tmp = target.with_name(COMPACTED + ".tmp")
+        with tmp.open("wb") as f:  # on disk before the raw file goes
+            f.write(packed)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, target)
+    (run_dir / METRICS).unlink(missing_ok=True)
+    return len(data), len(packed)
 
 
 def complete_epochs(rows: list[dict], grid_size: int) -> int:

@@ -73,7 +73,7 @@ def load_curves(run_dirs: Sequence[str | Path], metric: str = "success_rate") ->
     for run_dir in map(Path, run_dirs):
         settings = outputs.read_config(run_dir)  # a field an older run's file lacks compares as its default
         members: dict[int, list[dict]] = defaultdict(list)
-        for row in outputs.read_rows(run_dir / "metrics.jsonl"):
+        for row in outputs.read_rows(outputs.metrics_file(run_dir)):
             members[row["member"]].append(row)
         for rows in members.values():
             rows.sort(key=lambda r: r["epoch"])

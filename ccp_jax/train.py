@@ -298,6 +298,7 @@ def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_e
         rows = [r for r in rows if r["epoch"] <= first_epoch]
         if lead:
             outputs.write_rows(metrics_path, rows)
+            (out / outputs.COMPACTED).unlink(missing_ok=True)  # a compacted run's rows are raw again, to append to
     else:
         first_epoch, state = 0, trainer.init(seed)
     start -= sum(r["epoch_wall_s"] for r in rows if r["member"] == 0)  # a resumed run's earlier epochs count too

@@ -35,7 +35,7 @@ import numpy as np
 import tyro
 from scipy import stats
 
-from ccp_jax import plot
+from ccp_jax import outputs, plot
 from common import cli, mean_std, merged_summary, read_json, success_at, write_text
 
 
@@ -90,7 +90,7 @@ def parse_variant(text: str) -> tuple[str, list[Path]]:
         raise SystemExit(f"error: variants: expected LABEL=DIR[,DIR...], got {text!r}")
     folders = [Path(d) for d in dirs.split(",")]
     for folder in folders:
-        if not ((folder / "config.json").exists() and (folder / "metrics.jsonl").exists()):
+        if not ((folder / "config.json").exists() and outputs.metrics_file(folder).exists()):
             raise SystemExit(f"error: variants: {folder} holds no run (config.json and metrics.jsonl)")
     return label, folders
 

@@ -174,7 +174,7 @@ def eta_star_drift(folders: list[Path]) -> dict[tuple, list[tuple[float, float]]
 
     rows_by_eta: dict[tuple, list[dict]] = {}
     for folder in folders:
-        for row in outputs.read_rows(folder / "metrics.jsonl"):
+        for row in outputs.read_rows(outputs.metrics_file(folder)):
             if "eta_star" in row:  # not in runs older than the diagnostic
                 rows_by_eta.setdefault(tuple(row["eta"]), []).append(row)
     drift = {}

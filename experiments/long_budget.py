@@ -34,7 +34,7 @@ from typing import Literal, Optional
 
 import numpy as np
 
-from ccp_jax import plot
+from ccp_jax import outputs, plot
 from ccp_jax.config import AUTO
 from common import (ALGO_NAMES, RESULTS, SCALES, ScaleName, cli, final_ends, fmt, mean_std, read_json, run_grid, success_at,
                     write_text)
@@ -141,7 +141,7 @@ def load(out: Path, runs: dict[str, tuple[tuple, dict]]) -> dict[str, dict]:
     """{variant: {"curves": [(steps, success)] per member, "members": finished members' summaries, "ends": ...}}."""
     found = {}
     for folder, (_, changes) in runs.items():
-        folders = [run for run in seed_folders(out, folder) if (run / "metrics.jsonl").exists()]
+        folders = [run for run in seed_folders(out, folder) if outputs.metrics_file(run).exists()]
         # load_curves pools the seed folders, refusing (or counting once) a seed found in two of them.
         for (_, _, eta), series in (plot.load_curves(folders) if folders else {}).items():
             found[variant(eta, changes)] = dict(curves=series, members=[], ends=[])

@@ -1,8 +1,9 @@
 """Per-arm evaluation success of an η-conditioned prototype run, and the arm a rule picks from the W epochs before
 (most successes, then furthest stage), scored on the epoch it is picked for:  python select_arm.py RUN_DIR [W]"""
-import json, sys, collections
+import sys, collections
+from ccp_jax import outputs
 d = sys.argv[1]; W = int(sys.argv[2]) if len(sys.argv) > 2 else 5
-rows = [json.loads(l) for l in open(d + '/metrics.jsonl')]
+rows = outputs.read_rows(outputs.metrics_file(d))  # metrics.jsonl or its compacted metrics.jsonl.gz
 by = collections.defaultdict(list)
 for r in rows: by[r['member']].append(r)
 arms = sorted(k for k in rows[0]['eval_end'] if k.startswith('arm_'))
