@@ -1,8 +1,9 @@
 """What the experiment scripts share: budgets per scale, resumable grid runs, the paper's numbers.
 
 Each script trains its grids through `ccp_jax.train.run` into
-`OUT/<domain>/<name>/` (the usual config.json, metrics.jsonl, summary.json),
-so any run folder can also be plotted or resumed by hand. A finished folder is
+`OUT/<domain>/<name>/` (the usual config.json, metrics.jsonl, summary.json;
+once a run is finished its metrics.jsonl is compacted into metrics.jsonl.gz,
+`outputs.compact_metrics`), so any run folder can also be plotted or resumed by hand. A finished folder is
 skipped, an interrupted one resumes from its last checkpoint; checkpoints are
 deleted once a run is finished (they hold the replay buffers: gigabytes).
 """
@@ -113,7 +114,7 @@ def run_grid(config: Config, out: Path, checkpoint_every: int = 10, log=print, k
     A folder holding a different config is refused (ConfigError naming the field), never overwritten.
     Checkpoints are deleted once the run is finished unless `keep_checkpoints` (TP's primitives need them).
     """
-    from ccp_jax import train  # heavy (jax): imported when a grid actually runs
+    from ccp_jax import outputs, train  # heavy (jax): imported when a grid actually runs
 
     summary_path, config_path = out / "summary.json", out / "config.json"
     if config_path.exists():
@@ -131,7 +132,7 @@ def run_grid(config: Config, out: Path, checkpoint_every: int = 10, log=print, k
         resume = mngr.latest_step() is not None
         mngr.close()
     if not resume:  # nothing to resume from: (re)start the run
-        for name in ("config.json", "metrics.jsonl"):
+        for name in ("config.json", outputs.METRICS, outputs.COMPACTED):
             (out / name).unlink(missing_ok=True)
     out.mkdir(parents=True, exist_ok=True)
     log(f"{'resuming' if resume else 'training'} {config.algo} on {config.env}"
@@ -142,6 +143,8 @@ def run_grid(config: Config, out: Path, checkpoint_every: int = 10, log=print, k
                         tensorboard=False)
     if not keep_checkpoints:
         shutil.rmtree(out / "checkpoints", ignore_errors=True)
+    before, after = outputs.compact_metrics(out)  # committed results stay small; the CLI's own runs stay raw
+    log(f"compacted {outputs.METRICS}: {before:,} -> {after:,} bytes")
     log(f"finished {out} in {time.time() - start:.0f} s")
     return summary
 
@@ -178,7 +181,7 @@ def merged_summary(folders: Sequence[Path], in_progress: bool = False) -> Option
     for folder in folders:
         settings = Config.from_dict(read_json(Path(folder) / "config.json"))
         if in_progress and not (Path(folder) / "summary.json").exists():
-            summary = outputs.summarise(settings, outputs.read_rows(Path(folder) / "metrics.jsonl"))
+            summary = outputs.summarise(settings, outputs.read_rows(outputs.metrics_file(folder)))
         else:
             summary = read_json(Path(folder) / "summary.json")
         for m in summary["members"]:
@@ -199,7 +202,7 @@ def final_ends(folder: Path) -> dict[int, tuple[float, Optional[float]]]:
     from ccp_jax import outputs
 
     by_member: dict[int, list[dict]] = {}
-    for row in outputs.read_rows(Path(folder) / "metrics.jsonl"):
+    for row in outputs.read_rows(outputs.metrics_file(folder)):
         by_member.setdefault(row["member"], []).append(row)
     ends = {}
     for member, rows in by_member.items():
