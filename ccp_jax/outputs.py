@@ -146,6 +146,15 @@ def metrics_file(run_dir: Path) -> Path:
     return raw if raw.exists() or not (compacted := raw.with_name(COMPACTED)).exists() else compacted
 
 
+def _read_float(text: str) -> float:
+    """A JSON number of a metrics file: one marked with `E` (which Python's json never writes) is a float32 written
+    as its shortest decimal (`compact_metrics`), read back as that float32; any other as it is written."""
+    return float(np.float32(float(text))) if "E" in text else float(text)
+
+
+_ROWS = json.JSONDecoder(parse_float=_read_float)
+
+
 def read_rows(path: Path, field: str = "run_dir") -> list[dict]:
     """The rows of a jsonl file (or of its gzip, `PATH.gz`, where PATH itself is not there); a last line without its
     newline is a row still being written and is left out.
@@ -166,58 +175,48 @@ def read_rows(path: Path, field: str = "run_dir") -> list[dict]:
         if not line.strip():
             continue
         try:
-            rows.append(json.loads(line))
+            rows.append(_ROWS.decode(line))
         except json.JSONDecodeError as err:
             raise ConfigError(field, f"{path} line {number} is not a JSON row ({err}); repair or remove it") from None
     return rows
 
 
-def _float32_shortest(x: Any) -> Any:
-    """`x` with every float that is exactly a float32 (the device's metrics) replaced by the shortest decimal that
-    reads back as that float32; other floats (wall times, fractions computed on the host) are kept as they are."""
+def _float_text(x: float) -> str:
+    """A float as `compact_metrics` writes it: a float32 value (the device's metrics, e.g. 0.30000001192092896) as
+    its shortest float32 decimal marked with `E` (0.3E0), which `_read_float` widens back to the same value; a float
+    whose decimal is that short already (0.5), or that is no float32 (wall times, ratios from the config), as json
+    writes it."""
+    if math.isfinite(x):
+        with np.errstate(over="ignore"):
+            single = np.float32(x)
+        if float(single) == x:
+            short = repr(float(np.format_float_scientific(single, unique=True)))
+            marked = short.replace("e", "E") if "e" in short else short + "E0"
+            if float(short) != x and _read_float(marked) == x:
+                return marked
+    return json.dumps(x)
+
+
+def _compact_text(x: Any) -> str:
+    """`json.dumps(x)` (same separators and escapes), with floats written by `_float_text`."""
     if isinstance(x, float):
-        if math.isfinite(x):
-            with np.errstate(over="ignore"):
-                single = np.float32(x)
-            if float(single) == x:
-                short = float(np.format_float_scientific(single, unique=True))
-                if float(np.float32(short)) == x:
-                    return short
-        return x
+        return _float_text(x)
     if isinstance(x, dict):
-        return {k: _float32_shortest(v) for k, v in x.items()}
+        return "{" + ", ".join(f"{json.dumps(k)}: {_compact_text(v)}" for k, v in x.items()) + "}"
     if isinstance(x, list):
-        return [_float32_shortest(v) for v in x]
-    return x
-
-
-def _same_value(original: Any, back: Any) -> bool:
-    """Whether a compacted value gives the original back: a float32 one once read as a float32 (and widened
-    again), every other value exactly (same type, same keys in the same order)."""
-    if isinstance(original, float):
-        if not isinstance(back, float):
-            return False
-        if math.isnan(original):
-            return math.isnan(back)
-        return back == original or float(np.float32(back)) == original
-    if type(original) is not type(back):
-        return False
-    if isinstance(original, dict):
-        return list(original) == list(back) and all(_same_value(v, back[k]) for k, v in original.items())
-    if isinstance(original, list):
-        return len(original) == len(back) and all(_same_value(a, b) for a, b in zip(original, back))
-    return original == back
+        return "[" + ", ".join(_compact_text(v) for v in x) + "]"
+    return json.dumps(x)
 
 
 def compact_metrics(run_dir: Path) -> tuple[int, int]:
     """Rewrites a finished run's metrics.jsonl as metrics.jsonl.gz, about a seventh of the bytes; returns the
     metrics' bytes (before, after).
 
-    Floats that are exactly float32 are written as their shortest float32 decimal (0.3 for 0.30000001192092896),
-    which reads back as the same float32; everything else is written as it was. Every value is checked against the
-    original before the raw file is deleted. The gzip has no name or time in it, so compacting the same rows again
-    gives the same bytes, and an already compacted folder is left as it is (a plain gzip is rewritten compactly).
-    Only a finished run (summary.json) is compacted: a running one still appends to metrics.jsonl.
+    Float32 values are written as their shortest decimal, marked so that `read_rows` reads back the very same
+    float (`_float_text`); the rows read back are checked to be the original ones, value for value, before the
+    raw file is deleted. The gzip has no name or time in it, so compacting the same rows again gives the same
+    bytes, and an already compacted folder is left as it is (a plain gzip is rewritten compactly). Only a finished
+    run (summary.json) is compacted: a running one still appends to metrics.jsonl.
     """
     run_dir = Path(run_dir)
     if not (run_dir / "summary.json").exists():
@@ -230,10 +229,11 @@ def compact_metrics(run_dir: Path) -> tuple[int, int]:
     if text and not text.endswith("\n"):
         raise ConfigError("run_dir", f"{source}'s last row has no newline (cut while written); repair it first")
     rows = read_rows(source)
-    packed = gzip.compress("".join(json.dumps(_float32_shortest(r)) + "\n" for r in rows).encode(),
-                           compresslevel=9, mtime=0)
-    back = [json.loads(line) for line in gzip.decompress(packed).decode().splitlines()]
-    if len(back) != len(rows) or not all(_same_value(a, b) for a, b in zip(rows, back)):
+    packed = gzip.compress("".join(_compact_text(r) + "\n" for r in rows).encode(), compresslevel=9, mtime=0)
+    back = [_ROWS.decode(line) for line in gzip.decompress(packed).decode().splitlines()]
+    # json's own text of a value is exact (every float's repr, NaN, int or bool, key order), so equal texts are
+    # equal rows.
+    if [json.dumps(r) for r in back] != [json.dumps(r) for r in rows]:
         raise RuntimeError(f"{source}: the compacted rows do not read back as the original ones; nothing changed")
     target = run_dir / COMPACTED
     if source != target or packed != data:
