@@ -4,9 +4,10 @@
     python experiments/compact_results.py --root runs/         # any folder of run folders
 
 A run folder is one holding summary.json (finished) and metrics.jsonl or metrics.jsonl.gz.
-`ccp_jax.outputs.compact_metrics` writes each float32 metric as its shortest decimal and
-gzips the rows (about a seventh of the bytes), checks every value against the original
-and only then deletes the raw file; every reader takes either form. Idempotent: a folder
+`ccp_jax.outputs.compact_metrics` writes each float32 metric as its shortest decimal,
+marked so that `outputs.read_rows` gives the very same float back, and gzips the rows
+(about a seventh of the bytes); it checks every row read back against the original and
+only then deletes the raw file. Every reader takes either form. Idempotent: a folder
 compacted already is left byte for byte as it is. Folders still training (no
 summary.json) are listed and left alone. Prints the bytes before and after, per folder
 and in total.
