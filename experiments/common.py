@@ -21,8 +21,10 @@ import numpy as np
 import tyro
 
 from ccp_jax import checkpoint
-from ccp_jax.config import AUTO, Config, ConfigError, make_config
+from ccp_jax.config import Config, ConfigError, make_config
 from ccp_jax.devices import split_host_cpu
+from ccp_jax.eta import AUTO
+from envs_mjx import configure_cpu
 
 # Domains: (env, rooms); the paper's four, and Brax's pusher (issue 11). Peg and pusher have two fixed stages.
 DOMAINS = {"maze2": ("maze", 2), "maze3": ("maze", 3), "maze4": ("maze", 4), "peg": ("peg", 2),
@@ -114,7 +116,8 @@ def run_grid(config: Config, out: Path, checkpoint_every: int = 10, log=print, k
     A folder holding a different config is refused (ConfigError naming the field), never overwritten.
     Checkpoints are deleted once the run is finished unless `keep_checkpoints` (TP's primitives need them).
     """
-    from ccp_jax import outputs, train  # heavy (jax): imported when a grid actually runs
+    # heavy (jax): imported when a grid actually runs
+    from ccp_jax import outputs, train
 
     summary_path, config_path = out / "summary.json", out / "config.json"
     if config_path.exists():
@@ -273,6 +276,7 @@ def cli(main: Callable[[Any], Any], args_type: type, errors: tuple[type[Exceptio
     share those devices. Without `largest_grid`: twice the cores, for `grid_devices` to choose from."""
     try:
         args = tyro.cli(args_type)
+        configure_cpu()  # before anything starts JAX: MJX's XLA flag
         split_host_cpu("auto", largest_grid(args) if largest_grid else None)
         main(args)
     except errors as err:
