@@ -1,19 +1,17 @@
 """ccp-jax: Cooperative Consecutive Policies (CSAC) for multi-stage RL, end to end in JAX.
 
 The public API is imported lazily, so `python -m ccp_jax.plot` and friends start
-without loading JAX, brax and MuJoCo first.
+without loading JAX, brax and MuJoCo first. Importing this package changes
+nothing global: a program that steps MJX envs (peg, pusher) on a CPU calls
+`ccp_jax.configure_cpu()` (= `envs_mjx.configure_cpu`) once before JAX starts,
+as the CLI and the tools do.
 """
 import importlib
-import os
-
-from envs_mjx import cpu_xla_flags
-
-# Before JAX starts: the CPU fusion emitters slow MJX ~50x (a user's own setting is kept).
-os.environ["XLA_FLAGS"] = cpu_xla_flags()
 
 _EXPORTS = {
     "Config": "ccp_jax.config", "ConfigError": "ccp_jax.config", "make_config": "ccp_jax.config",
     "load_policy": "ccp_jax.policy", "evaluate_run": "ccp_jax.evaluate", "run": "ccp_jax.train",
+    "configure_cpu": "envs_mjx",
 }
 __all__ = list(_EXPORTS)
 

@@ -9,6 +9,11 @@ hands over only while exploring from one that never does.
 """
 from __future__ import annotations
 
+import envs_mjx
+
+if __name__ == "__main__":  # the CLI: MJX's CPU flag and quiet import, before the imports below load brax and MJX
+    envs_mjx.configure_cpu()
+
 import argparse
 from pathlib import Path
 from typing import Optional, Sequence
@@ -53,6 +58,7 @@ def table(rows: list[dict]) -> str:
 
 
 def main(argv: Optional[Sequence[str]] = None) -> list[dict]:
+    envs_mjx.configure_cpu()  # before anything starts JAX
     parser = argparse.ArgumentParser(prog="python -m ccp_jax.evaluate",
                                      description="Evaluate every grid member of a trained run from its checkpoint.")
     parser.add_argument("run_dir", type=Path, metavar="RUN_DIR")

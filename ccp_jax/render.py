@@ -8,6 +8,11 @@ Peg in hole: MuJoCo frames from `envs_mjx.peg_in_hole.render_frames`. MP4 needs 
 """
 from __future__ import annotations
 
+import envs_mjx
+
+if __name__ == "__main__":  # the CLI: MJX's CPU flag and quiet import, before the imports below load brax and MJX
+    envs_mjx.configure_cpu()
+
 import argparse
 import dataclasses
 import functools
@@ -199,6 +204,7 @@ def render(run_dir: Path, member: int = 0, episodes: int = 2, out: Optional[Path
 
 
 def main(argv: Optional[Sequence[str]] = None) -> Path:
+    envs_mjx.configure_cpu()  # before anything starts JAX
     parser = argparse.ArgumentParser(prog="python -m ccp_jax.render",
                                      description="Video of a trained grid member's deterministic episodes.")
     parser.add_argument("run_dir", type=Path, metavar="RUN_DIR")

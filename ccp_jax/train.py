@@ -7,6 +7,11 @@ grid member is one call of the compiled, vmapped `train_step`.
 """
 from __future__ import annotations
 
+import envs_mjx
+
+if __name__ == "__main__":  # the CLI: MJX's CPU flag and quiet import, before the imports below load brax and MJX
+    envs_mjx.configure_cpu()
+
 import dataclasses
 import os
 import time
@@ -357,7 +362,8 @@ def main(argv: Optional[list[str]] = None) -> dict:
     args = tyro.cli(Args, args=argv)
     if args.cpu_devices != "auto" and args.cpu_devices < 1:
         raise ConfigError("cpu_devices", f"must be >= 1 or auto, got {args.cpu_devices}")
-    split_host_cpu(args.cpu_devices, planned_grid_size(args))  # before anything starts JAX
+    envs_mjx.configure_cpu()  # before anything starts JAX (the `ccp-train` entry point comes here)
+    split_host_cpu(args.cpu_devices, planned_grid_size(args))
     if args.distributed:
         jax.distributed.initialize(coordinator_address=args.coordinator, num_processes=args.num_processes,
                                    process_id=args.process_id)

@@ -1,7 +1,7 @@
 """Multi-stage environments for CCP, pure functions on the `brax.envs.base.Env` API.
 
 This package knows nothing of agents. Every env here follows one contract
-(the trainer relies on it; SPEC §4):
+(the trainer relies on it; docs/design.md#environments-and-their-contract):
 
 * ``reset(rng) -> State`` and ``step(state, action) -> State`` are pure,
   jit- and vmap-able, with actions in ``[-1, 1]^action_size``.
@@ -26,8 +26,10 @@ import importlib.machinery
 import io
 import os
 import sys
+import warnings
 
-# XLA's CPU fusion emitters make MJX ~50x slower on CPU (PEG_NOTES.md); this switches them off.
+# XLA's CPU fusion emitters make MJX ~50x slower on a CPU (docs/peg.md#why-mjx-is-slow-on-a-cpu); this
+# switch turns them off.
 XLA_CPU_EMITTERS = "xla_cpu_use_fusion_emitters"  # the option's name, in $XLA_FLAGS and in compile options
 XLA_CPU_FLAG = f"--{XLA_CPU_EMITTERS}=false"
 
@@ -51,8 +53,7 @@ def emitter_switch_known(jaxlib_version: str | None = None) -> bool:
 def cpu_xla_flags(flags: str | None = None) -> str:
     """``flags`` (default: $XLA_FLAGS) with the CPU fusion-emitter switch appended if absent.
 
-    Set ``os.environ["XLA_FLAGS"] = cpu_xla_flags()`` before JAX initialises its CPU
-    backend. A user's own setting of the flag is kept; an XLA without the switch gets nothing.
+    `configure_cpu` sets it. A user's own setting of the flag is kept; an XLA without the switch gets nothing.
     """
     flags = os.environ.get("XLA_FLAGS", "") if flags is None else flags
     if XLA_CPU_EMITTERS in flags or not emitter_switch_known():
@@ -103,5 +104,43 @@ class _QuietWarpNotice(importlib.abc.MetaPathFinder):
         return spec
 
 
-if _WARP_MODULE not in sys.modules and not any(isinstance(f, _QuietWarpNotice) for f in sys.meta_path):
-    sys.meta_path.insert(0, _QuietWarpNotice())
+def configure_cpu() -> bool:
+    """Prepares this process to step MJX envs on a CPU; call it once, before JAX starts (before the first array).
+
+    It switches XLA's CPU fusion emitters off in $XLA_FLAGS (`cpu_xla_flags`: with them, MJX's programs run
+    about 50x slower on a CPU; a user's own setting of the switch is kept) and drops the two lines
+    `mujoco.mjx` prints at import when its optional Warp backend is absent. Importing `envs_mjx` or `ccp_jax`
+    changes neither: the CLI and the tools call this; a program of yours that builds a peg or pusher env on a
+    CPU should too (those envs warn once when it did not). Harmless on an accelerator, where only the CPU
+    flag is set and unused. Returns False, leaving $XLA_FLAGS alone, once JAX's backends are running (the
+    flag is read when they start); the import filter is installed either way.
+    """
+    from jax._src import xla_bridge  # no public API says whether the backends have started
+
+    if _WARP_MODULE not in sys.modules and not any(isinstance(f, _QuietWarpNotice) for f in sys.meta_path):
+        sys.meta_path.insert(0, _QuietWarpNotice())
+    if xla_bridge.backends_are_initialized():
+        return False
+    os.environ["XLA_FLAGS"] = cpu_xla_flags()
+    return True
+
+
+_warned: set[str] = set()
+
+
+def warn_if_cpu_unconfigured(env_name: str, slowdown: str) -> bool:
+    """Warns once per `env_name` when an MJX env is built on a CPU whose XLA still has the fusion emitters on.
+
+    `slowdown` says how much slower that env runs so. Returns whether it warned (this call or an earlier one).
+    """
+    import jax
+
+    if (jax.default_backend() != "cpu" or not emitter_switch_known()
+            or XLA_CPU_EMITTERS in os.environ.get("XLA_FLAGS", "")):
+        return False
+    if env_name not in _warned:
+        _warned.add(env_name)
+        warnings.warn(f"{env_name} on a CPU without envs_mjx.configure_cpu() (call it before JAX starts; the "
+                      f"ccp_jax CLI does): XLA's CPU fusion emitters are on, and this env runs {slowdown} slower.",
+                      stacklevel=3)
+    return True

@@ -79,7 +79,6 @@ from __future__ import annotations
 
 import os
 import sys
-import warnings
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -104,7 +103,7 @@ except Exception as _err:  # mujoco picks its GL backend at import; a broken one
     raise
 from brax.envs.base import Env, State
 
-from envs_mjx import XLA_CPU_FLAG, cpu_xla_flags  # noqa: F401  (re-exported)
+from envs_mjx import XLA_CPU_FLAG, cpu_xla_flags, warn_if_cpu_unconfigured  # noqa: F401  (re-exported)
 from mujoco import mjx
 
 ASSET = Path(__file__).resolve().parent / "assets" / "panda_peg.xml"
@@ -233,7 +232,7 @@ class PegInHole(Env):
         self._inserted = jnp.asarray(INSERTED, jnp.float32)
         self._hole_obs = jnp.asarray(np.r_[HOLE_MOUTH, 1.0, 0.0, 0.0, 0.0], jnp.float32)
         self._hand_R = jnp.asarray(_HAND_R)
-        self._warn_cpu_flags()
+        warn_if_cpu_unconfigured("PegInHole", "about 50x")
 
     # ----- brax Env API -------------------------------------------------------------
     @property
@@ -374,15 +373,6 @@ class PegInHole(Env):
             opening, opening_rate,
             c - grip, self._inserted - c,
         ]).astype(jnp.float32)
-
-    @staticmethod
-    def _warn_cpu_flags():
-        if jax.default_backend() == "cpu" and "xla_cpu_use_fusion_emitters" not in os.environ.get("XLA_FLAGS", ""):
-            warnings.warn(
-                "PegInHole on CPU: set XLA_FLAGS to include --xla_cpu_use_fusion_emitters=false before JAX "
-                "starts (envs_mjx.peg_in_hole.cpu_xla_flags()); without it this env runs ~50x slower.",
-                stacklevel=3,
-            )
 
     # ----- helpers for tests, scripted controllers and the C simulator -------------
     def peg_depth(self, data) -> jax.Array:

@@ -29,8 +29,6 @@ torques in [-1, 1] (brax scales them to its actuator range).
 """
 from __future__ import annotations
 
-import os
-import warnings
 from typing import Callable, NamedTuple
 
 import jax
@@ -41,6 +39,7 @@ from brax import kinematics
 from brax import math as bmath
 from brax.envs.base import State
 
+from envs_mjx import warn_if_cpu_unconfigured
 from envs_mjx.stage_wrapper import StageSpec, StageWrapper
 
 TIP, OBJECT, GOAL = slice(14, 17), slice(17, 20), slice(20, 23)
@@ -77,11 +76,8 @@ class Pusher(StageWrapper):
     goal_scale = 0.4  # the object starts at most 0.36 m from the goal
 
     def __init__(self, episode_length: int = 200, backend: str = "mjx"):
-        if backend == "mjx" and jax.default_backend() == "cpu" and "xla_cpu_use_fusion_emitters" not in os.environ.get(
-                "XLA_FLAGS", ""):
-            warnings.warn("Pusher(backend='mjx') on CPU: without XLA_FLAGS=--xla_cpu_use_fusion_emitters=false "
-                          "(envs_mjx.cpu_xla_flags(), set before JAX starts; ccp_jax does it) it runs 14x "
-                          "(batch 1) to 300x (batch 64) slower; backend='generalized' does not need the flag.", stacklevel=2)
+        if backend == "mjx":
+            warn_if_cpu_unconfigured("Pusher(backend='mjx')", "14x (batch 1) to 300x (batch 64)")
         inner = brax_envs.get_environment("pusher", backend=backend)
         spec = StageSpec(
             num_stages=2,

@@ -16,6 +16,7 @@ from pathlib import Path
 
 from ccp_jax import plot
 from curves import STAGE2, draw_panels
+from envs_mjx import configure_cpu
 
 RESULTS = Path(__file__).parent / "results"
 ROOT = RESULTS / "table1_cpu_forward_slide"
@@ -96,4 +97,5 @@ def main() -> list[Path]:
 
 
 if __name__ == "__main__":
+    configure_cpu()  # before anything starts JAX: MJX's XLA flag, as the CLI sets it
     main()

@@ -34,6 +34,7 @@ from pathlib import Path  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import jax  # noqa: E402
+from envs_mjx import configure_cpu  # noqa: E402
 
 # Default scan lengths per batch size: long enough to time, short enough for a 2-core CPU.
 DEFAULT_STEPS = {1: 200, 64: 40, 1024: 8}
@@ -124,4 +125,5 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
+    configure_cpu()  # before anything starts JAX: MJX's XLA flag, as the CLI sets it
     main()

@@ -23,6 +23,7 @@ import tyro
 from ccp_jax import checkpoint
 from ccp_jax.config import AUTO, Config, ConfigError, make_config
 from ccp_jax.devices import split_host_cpu
+from envs_mjx import configure_cpu
 
 # Domains: (env, rooms); the paper's four, and Brax's pusher (issue 11). Peg and pusher have two fixed stages.
 DOMAINS = {"maze2": ("maze", 2), "maze3": ("maze", 3), "maze4": ("maze", 4), "peg": ("peg", 2),
@@ -274,6 +275,7 @@ def cli(main: Callable[[Any], Any], args_type: type, errors: tuple[type[Exceptio
     share those devices. Without `largest_grid`: twice the cores, for `grid_devices` to choose from."""
     try:
         args = tyro.cli(args_type)
+        configure_cpu()  # before anything starts JAX: MJX's XLA flag
         split_host_cpu("auto", largest_grid(args) if largest_grid else None)
         main(args)
     except errors as err:

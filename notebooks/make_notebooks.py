@@ -16,6 +16,10 @@ if importlib.util.find_spec("ccp_jax") is None:
 PARAMS = '''import os
 SCALE = os.environ.get("CCP_NOTEBOOK_SCALE", "full")  # "tiny" runs everything in seconds (tests)
 TINY = SCALE == "tiny"'''
+# MJX envs (peg, pusher) on a CPU: XLA's fusion emitters off, before the first JAX array (the CLI does the same).
+MJX_PARAMS = PARAMS + '''
+import ccp_jax
+ccp_jax.configure_cpu()'''
 
 QUICKSTART = [
     new_markdown_cell("# ccp-jax quickstart\n\nTrain cooperative agents (CSAC) on the 2-room maze, plot their "
@@ -77,7 +81,7 @@ PEG = [
                       "cooperation lets the grasping agent learn the thick-section grasp. MJX is slow on a "
                       "CPU: use a GPU runtime for real training."),
     new_code_cell(INSTALL),
-    new_code_cell(PARAMS),
+    new_code_cell(MJX_PARAMS),
     new_code_cell('''from pathlib import Path
 import tempfile
 from ccp_jax import make_config, run
@@ -100,7 +104,7 @@ OWN_TASK = [
                       "CSAC trains on it. A reach that touches the puck on the goal's side is greedy and useless "
                       "for the push: the next agent's critic is what tells the reaching agent to come from behind."),
     new_code_cell(INSTALL),
-    new_code_cell(PARAMS),
+    new_code_cell(MJX_PARAMS),
     new_code_cell('''import ccp_jax  # first: it sets the XLA CPU flag that MuJoCo MJX needs on a CPU
 import jax.numpy as jnp
 from brax import envs

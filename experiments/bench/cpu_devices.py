@@ -31,6 +31,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from ccp_jax.devices import CPU_DEVICES, available_cores  # noqa: E402
 from grid_scaling import EpochShape, config_for  # noqa: E402
+from envs_mjx import configure_cpu  # noqa: E402
 
 
 @dataclasses.dataclass
@@ -98,6 +99,7 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
+    configure_cpu()  # before anything starts JAX: MJX's XLA flag, as the CLI sets it
     parsed = tyro.cli(Args)
     if parsed.worker:
         worker(parsed)

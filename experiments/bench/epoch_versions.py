@@ -34,6 +34,7 @@ from ccp_jax.networks import MLP, TwinCritic
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from timed import Alternating, TimedGrid, emitters_on_everywhere  # noqa: E402
+from envs_mjx import configure_cpu  # noqa: E402
 
 
 def gather_before_each_update(learner, agents, buffer, eta, ready, key, loops, batch_size):
@@ -89,5 +90,6 @@ def main(args: Alternating) -> None:
 
 
 if __name__ == "__main__":
+    configure_cpu()  # before anything starts JAX: MJX's XLA flag, as the CLI sets it
     emitters_on_everywhere()  # before JAX computes: every version compiled as the maze epoch is
     main(tyro.cli(Alternating, description=__doc__))

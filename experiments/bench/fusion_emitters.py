@@ -3,7 +3,7 @@
     python experiments/bench/fusion_emitters.py                      # 3-room CSAC, one run (SPEC §7's speed yardstick)
     python experiments/bench/fusion_emitters.py --rooms 2 --seeds 3  # 2-room grid of 3, members one at a time
 
-Importing `ccp_jax` turns the emitters off process-wide (`envs_mjx.cpu_xla_flags`: MJX needs it), and the
+`envs_mjx.configure_cpu()` (called first, as by the CLI) turns the emitters off process-wide (MJX needs it), and the
 trainer compiles its epoch with them back on for an env that does not run MJX
 (`envs_mjx.cpu_compiler_options`). Both versions of the same grid trainer (SPEC §7's settings: "small" preset,
 [64, 64], the paper's epoch of 5000 env steps and 1000 joint updates, buffer 2e5, 10 evaluation episodes) are
@@ -23,6 +23,7 @@ import ccp_jax.trainer as trainer_module
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from timed import Alternating, TimedGrid  # noqa: E402
+from envs_mjx import configure_cpu  # noqa: E402
 
 
 def main(args: Alternating) -> None:
@@ -44,4 +45,5 @@ def main(args: Alternating) -> None:
 
 
 if __name__ == "__main__":
+    configure_cpu()  # before anything starts JAX: MJX's XLA flag, as the CLI sets it
     main(tyro.cli(Alternating, description=__doc__))

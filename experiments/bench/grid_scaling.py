@@ -44,6 +44,7 @@ from ccp_jax.config import make_config
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from timed import TimedGrid  # noqa: E402
+from envs_mjx import configure_cpu  # noqa: E402
 
 
 @dataclasses.dataclass
@@ -155,4 +156,5 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
+    configure_cpu()  # before anything starts JAX: MJX's XLA flag, as the CLI sets it
     main(tyro.cli(Args))

@@ -25,6 +25,7 @@ import tyro
 from ccp_jax.config import make_config
 from ccp_jax.envs import make_env
 from ccp_jax.trainer import make_grid_train, make_train
+from envs_mjx import configure_cpu
 
 
 @dataclasses.dataclass
@@ -67,4 +68,5 @@ def main(args: Args) -> None:
 
 
 if __name__ == "__main__":
+    configure_cpu()  # before anything starts JAX: MJX's XLA flag, as the CLI sets it
     main(tyro.cli(Args, description=__doc__))

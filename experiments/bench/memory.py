@@ -37,6 +37,7 @@ import tyro
 from ccp_jax.config import make_config
 from ccp_jax.envs import make_env
 from ccp_jax.trainer import make_train
+from envs_mjx import configure_cpu
 
 GB = 1e9
 
@@ -201,4 +202,5 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
+    configure_cpu()  # before anything starts JAX: MJX's XLA flag, as the CLI sets it
     main(tyro.cli(Args))

@@ -42,6 +42,7 @@ from common import RESULTS, SCALES, ScaleName, check_domains  # noqa: E402
 from timed import TimedGrid  # noqa: E402
 
 from ccp_jax.config import Config  # noqa: E402
+from envs_mjx import configure_cpu  # noqa: E402
 
 
 @dataclasses.dataclass
@@ -142,4 +143,5 @@ def main(args: Args) -> None:
 
 
 if __name__ == "__main__":
+    configure_cpu()  # before anything starts JAX: MJX's XLA flag, as the CLI sets it
     main(tyro.cli(Args))

@@ -25,6 +25,7 @@ from ccp_jax.buffer import ReplayBuffer
 from ccp_jax.config import make_config
 from ccp_jax.learner import init_agents, make_learner, make_networks, train_loops
 from timed import SameWork, emitters_on_everywhere  # this folder: the script's own
+from envs_mjx import configure_cpu
 
 
 @dataclasses.dataclass
@@ -117,5 +118,6 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
+    configure_cpu()  # before anything starts JAX: MJX's XLA flag, as the CLI sets it
     emitters_on_everywhere()  # the update compiled as the trainer compiles the maze epoch
     main(tyro.cli(Args))

@@ -39,6 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 from ccp_jax.devices import CpuDevices, split_host_cpu  # noqa: E402
 from grid_scaling import EpochShape, config_for  # noqa: E402
+from envs_mjx import configure_cpu  # noqa: E402
 
 SPEC_ROOF_GFLOPS = 148.0  # SPEC §0: the 256-wide jnp.dot roof of the machine SPEC §7 was measured on
 
@@ -138,5 +139,6 @@ def main(args: Args) -> str:
 
 
 if __name__ == "__main__":
+    configure_cpu()  # before anything starts JAX: MJX's XLA flag, as the CLI sets it
     parsed = tyro.cli(Args)
     worker(parsed) if parsed.worker else main(parsed)

@@ -25,6 +25,7 @@ from timed import TimedEpochs, TimedGrid, emitters_on_everywhere  # noqa: E402
 
 from ccp_jax.config import make_config  # noqa: E402
 from envs_mjx.maze import Maze  # noqa: E402
+from envs_mjx import configure_cpu  # noqa: E402
 
 
 @dataclasses.dataclass
@@ -68,5 +69,6 @@ def main(args: Args) -> None:
 
 
 if __name__ == "__main__":
+    configure_cpu()  # before anything starts JAX: MJX's XLA flag, as the CLI sets it
     emitters_on_everywhere()  # both sides compile alike (timed.py)
     main(tyro.cli(Args))

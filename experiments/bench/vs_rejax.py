@@ -59,6 +59,7 @@ from envs_mjx.maze import Maze
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from timed import SameWork, TimedEpochs, avals, emitters_on_everywhere, our_sac, updates_per_epoch  # noqa: E402
 from update_speed import add_roof  # noqa: E402
+from envs_mjx import configure_cpu  # noqa: E402
 
 
 @dataclasses.dataclass
@@ -197,5 +198,6 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
+    configure_cpu()  # before anything starts JAX: MJX's XLA flag, as the CLI sets it
     emitters_on_everywhere()  # both sides compile alike (timed.py)
     main(tyro.cli(Args))

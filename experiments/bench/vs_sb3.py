@@ -51,6 +51,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from gym_maze import GymMaze  # noqa: E402
 from update_speed import full_of_noise, matmul_roof  # noqa: E402
 from timed import no_eval  # noqa: E402
+from envs_mjx import configure_cpu  # noqa: E402
 
 
 @dataclasses.dataclass
@@ -283,4 +284,5 @@ def main(args: Args) -> dict:
 
 
 if __name__ == "__main__":
+    configure_cpu()  # before anything starts JAX: MJX's XLA flag, as the CLI sets it
     main(tyro.cli(Args))

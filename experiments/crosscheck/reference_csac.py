@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import optax
 
 from envs_mjx.maze import Maze
+from envs_mjx import configure_cpu
 
 
 @dataclasses.dataclass(frozen=True)
@@ -295,4 +296,5 @@ def main() -> None:
 
 
 if __name__ == "__main__":
+    configure_cpu()  # before anything starts JAX: MJX's XLA flag, as the CLI sets it
     main()
