@@ -21,13 +21,11 @@ Each cell trains as one vmapped grid into OUT/<domain>/<cell>/ (or
 A stopped process loses at most 25 epochs: run the same command again and every
 unfinished grid resumes from its latest checkpoint (finished ones are skipped).
 Checkpoints hold the 1e6-transition buffers (gigabytes) and are deleted once a
-grid finishes; commit its folder's config.json, metrics.jsonl.gz and summary.json.
+grid finishes, when its metrics are compacted (metrics.jsonl.gz); commit the folder.
 """
 from __future__ import annotations
 
 import dataclasses
-import gzip
-import shutil
 from pathlib import Path
 from typing import Optional
 
@@ -113,15 +111,6 @@ def grid_folder(out: Path, cell: Cell, seeds: tuple[int, ...]) -> Path:
     return out / cell.domain / name
 
 
-def compress_metrics(folder: Path) -> None:
-    """metrics.jsonl -> metrics.jsonl.gz once a grid has finished (a fifth of the bytes; every reader takes both)."""
-    raw = folder / "metrics.jsonl"
-    if (folder / "summary.json").exists() and raw.exists():
-        with raw.open("rb") as src, gzip.open(folder / "metrics.jsonl.gz", "wb", compresslevel=9) as dst:
-            shutil.copyfileobj(src, dst)
-        raw.unlink()
-
-
 def train(args: Args) -> None:
     for cell in args.chosen():
         for seeds in args.chunks():
@@ -131,8 +120,7 @@ def train(args: Args) -> None:
                 continue
             config = make_config("small", env="maze", rooms=cell.rooms, algo=cell.algo, etas=cell.etas, seeds=seeds,
                                  **{**SETTINGS, "total_steps": args.total_steps})
-            run_grid(config, folder, checkpoint_every=CHECKPOINT_EVERY)
-            compress_metrics(folder)
+            run_grid(config, folder, checkpoint_every=CHECKPOINT_EVERY)  # compacts metrics.jsonl once finished
 
 
 def largest_grid(args: Args) -> Optional[int]:

@@ -15,16 +15,14 @@ from __future__ import annotations
 
 import csv
 import dataclasses
-import gzip
 import io
-import json
 import sys
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
-from ccp_jax import stats
+from ccp_jax import outputs, stats
 from common import ALGO_NAMES, PAPER_TABLE1, RESULTS, write_text
 from paper_budget import QUEUE, SEEDS, Cell
 
@@ -67,21 +65,15 @@ class Member:
         return f"{self.seed}: room {stage:.1f}{pocket}"
 
 
-def read_rows(folder: Path) -> list[dict]:
-    """metrics.jsonl (a grid still training: complete lines only) or metrics.jsonl.gz (a finished one)."""
-    raw, packed = folder / "metrics.jsonl", folder / "metrics.jsonl.gz"
-    text = raw.read_text() if raw.exists() else gzip.open(packed, "rt").read() if packed.exists() else ""
-    return [json.loads(line) for line in text.split("\n")[:-1] if line.strip()]
-
-
 def load_cell(out: Path, cell: Cell) -> list[Member]:
     """Every seed of `cell` found in its folder and its seed-chunk folders, complete epochs only."""
     members = {}
     for folder in sorted((out / cell.domain).glob(f"{cell.name}*")):
-        if folder.name != cell.name and not folder.name.startswith(f"{cell.name}_seeds"):
+        if (folder.name != cell.name and not folder.name.startswith(f"{cell.name}_seeds")
+                or not outputs.metrics_file(folder).exists()):
             continue
         by_member: dict[int, list[dict]] = {}
-        for row in read_rows(folder):
+        for row in outputs.read_rows(outputs.metrics_file(folder), field="out"):
             by_member.setdefault(row["member"], []).append(row)
         complete = min((len(rows) for rows in by_member.values()), default=0)
         for rows in by_member.values():
