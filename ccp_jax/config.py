@@ -9,9 +9,12 @@ from __future__ import annotations
 import dataclasses
 import itertools
 import math
-from typing import Literal, Sequence
+from typing import TYPE_CHECKING, Literal, Sequence
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from ccp_jax.eta import EtaAutoRule
 
 ALGOS = ("csac", "naive", "sac", "tp")
 Algo = Literal["csac", "naive", "sac", "tp"]
@@ -26,13 +29,8 @@ NetworkInit = Literal["flax", "rlkit"]
 NETWORK_INITS = ("flax", "rlkit")
 CoopScale = Literal["unit", "own"]
 COOP_SCALES = ("unit", "own")
-EtaAutoRule = Literal["ranges", "outcomes", "gated", "trusted"]
-ETA_AUTO_RULES = ("ranges", "outcomes", "gated", "trusted")
-OUTCOME_RULES = ("outcomes", "gated", "trusted")  # the rules `trainer.outcome_eta` moves
-GATED_RULES = ("gated", "trusted")  # those that watch `successor_succeeded`
 # The maze kinematics of every run before config.json recorded them (sessions 1-27): reversing, stopping at walls.
 LEGACY_MAZE = {"maze_reverse": True, "maze_slide": False}
-AUTO = "auto"  # a ratio estimated during training (η*), see `Config.eta_auto_range`
 
 
 class ConfigError(ValueError):
@@ -41,21 +39,6 @@ class ConfigError(ValueError):
     def __init__(self, field: str, message: str):
         super().__init__(f"{field}: {message}")
         self.field = field
-
-
-def parse_eta(text: str, field: str = "eta") -> float | str:
-    """A ratio as typed: '0.3' -> 0.3, 'auto' -> AUTO; ConfigError naming `field` otherwise (the range is checked by Config)."""
-    if text.strip() == AUTO:
-        return AUTO
-    try:
-        return float(text)
-    except ValueError:
-        raise ConfigError(field, f"cannot read {text!r}; a ratio is a number in [0, 1] or {AUTO!r}") from None
-
-
-def parse_eta_vector(text: str, field: str = "eta_per_agent") -> tuple[float | str, ...]:
-    """'0.1,1.0' -> (0.1, 1.0); 'auto,1' -> ('auto', 1.0)."""
-    return tuple(parse_eta(x, field) for x in text.split(","))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -127,7 +110,7 @@ class Config:
     # κ of "auto": η* = Ran(Q_n) / (Ran(Q_n) + κ Ran(Q_{n+1})) recovers Q_n + κ Q_{n+1}; 1 is the appendix's sum.
     eta_auto_next_weight: float = 1.0
     # What "auto" follows: "ranges", the appendix's η* from the critics' running ranges (weighted by κ
-    # above), or "outcomes", a controller on where the training episodes fail (`trainer.outcome_eta`):
+    # above), or "outcomes", a controller on where the training episodes fail (`eta.outcome_eta`):
     # each epoch η_n moves by (`eta_auto_up_rate` × episodes failing in stage n − `eta_auto_rate` ×
     # episodes failing in stage n + 1) / episodes entering stage n, from the middle of `eta_auto_range`, within it;
     # or "gated", the same controller with only its upward term until an episode has succeeded in stage n + 1 and
@@ -205,26 +188,18 @@ class Config:
         return len(self.etas) * len(self.seeds)
 
     def eta_vector(self, eta: Sequence[float | str]) -> tuple[float | str, ...]:
-        """Per-agent ratios of length `num_agents`.
+        """Per-agent ratios of length `num_agents` (`eta.per_agent`)."""
+        from ccp_jax import eta as ratios  # local: eta.py imports this module
 
-        A single value is shared by the cooperative agents; N−1 values give one
-        per cooperative agent. The last agent gets η = 1 (it has no next critic).
-        """
-        eta = tuple(x if x == AUTO else float(x) for x in eta)
-        n = self.num_agents
-        if len(eta) == 1:
-            eta = eta * max(n - 1, 1)
-        if len(eta) == n - 1:
-            eta = eta + (1.0,)
-        return eta[:n]
+        return ratios.per_agent(eta, self.num_agents)
 
     def grid_arrays(self) -> tuple[np.ndarray, np.ndarray]:
-        """(eta float32[G, num_agents], seed int32[G]) for the vmapped grid axis; "auto" is NaN."""
+        """(eta float32[G, num_agents], seed int32[G]) for the vmapped grid axis; "auto" is NaN (`eta.grid_etas`)."""
+        from ccp_jax import eta as ratios
+
         members = self.grid
-        eta = np.asarray([[np.nan if x == AUTO else x for x in m[0]] for m in members], np.float32)
-        eta = eta.reshape(len(members), self.num_agents)
         seed = np.asarray([m[1] for m in members], np.int32)
-        return eta, seed
+        return ratios.grid_etas([m[0] for m in members], self.num_agents), seed
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
@@ -252,6 +227,7 @@ class Config:
 
     # --------------------------------------------------------------- validation
     def _validate(self) -> None:
+        from ccp_jax import eta as ratios  # local: eta.py imports this module
         from ccp_jax.envs import ENV_NAMES  # local: config must not import jax eagerly
 
         if self.env not in ENV_NAMES and ":" not in self.env:
@@ -296,24 +272,7 @@ class Config:
             raise ConfigError("seeds", "at least one seed is needed")
         if len(set(self.seeds)) != len(self.seeds):
             raise ConfigError("seeds", f"seeds must be distinct, got {self.seeds}")
-        if not self.etas:
-            raise ConfigError("eta", "at least one ratio is needed")
-        n = self.num_agents
-        if self.algo != "csac" and len(self.etas) > 1:
-            raise ConfigError("eta", f"--algo {self.algo} trains every agent on its own critic alone (η = 1): a grid "
-                                     f"of ratios would train identical runs; leave --eta out "
-                                     f"(got {[list(e) for e in self.etas]})")
-        for eta in self.etas:
-            if len(eta) not in (1, n - 1, n) or (len(eta) == n and n > 1 and not self.normalise_last):
-                allowed = "1 value" if n <= 2 else f"1 value or {n - 1} values (one per cooperative agent)"
-                raise ConfigError("eta_per_agent", f"ratio vector {tuple(eta)} has {len(eta)} values; "
-                                  f"{n} agent{'s' if n > 1 else ''} need{'' if n > 1 else 's'} {allowed}")
-            for x in eta:
-                if x != AUTO and not (isinstance(x, (int, float)) and 0.0 <= float(x) <= 1.0):
-                    raise ConfigError("eta", f"ratios must be numbers in [0, 1] or {AUTO!r}, got {x!r}")
-        vectors = [self.eta_vector(e) for e in self.etas]
-        if len(set(vectors)) != len(vectors):  # with the same seeds, a repeated ratio trains identical runs
-            raise ConfigError("eta", f"ratios must be distinct, got {[list(e) for e in self.etas]}")
+        ratios.check_ratios(self)
         if self.next_action not in NEXT_ACTIONS:
             raise ConfigError("next_action", f"unknown rule {self.next_action!r}; choose one of {NEXT_ACTIONS}")
         if self.tanh_log_prob not in TANH_LOG_PROBS:
@@ -334,23 +293,7 @@ class Config:
             raise ConfigError("initial_alpha", f"must be a positive finite number, got {self.initial_alpha}")
         if self.target_entropy is not None and not math.isfinite(self.target_entropy):
             raise ConfigError("target_entropy", f"must be a finite number (or None for −|A|), got {self.target_entropy}")
-        if not (math.isfinite(self.eta_auto_next_weight) and self.eta_auto_next_weight > 0):
-            raise ConfigError("eta_auto_next_weight", f"must be a positive finite number, got {self.eta_auto_next_weight}")
-        if self.eta_auto_rule not in ETA_AUTO_RULES:
-            raise ConfigError("eta_auto_rule", f"unknown rule {self.eta_auto_rule!r}; choose one of {ETA_AUTO_RULES}")
-        if not (math.isfinite(self.eta_auto_rate) and 0.0 < self.eta_auto_rate <= 1.0):
-            raise ConfigError("eta_auto_rate", f"must be in (0, 1], got {self.eta_auto_rate}")
-        if self.eta_auto_up_rate is not None and not (math.isfinite(self.eta_auto_up_rate)
-                                                      and 0.0 <= self.eta_auto_up_rate <= 1.0):
-            raise ConfigError("eta_auto_up_rate", f"must be in [0, 1] (or None: eta_auto_rate), got {self.eta_auto_up_rate}")
-        if not (math.isfinite(self.eta_auto_floor_step) and 0.0 <= self.eta_auto_floor_step <= 1.0):
-            raise ConfigError("eta_auto_floor_step", f"must be in [0, 1], got {self.eta_auto_floor_step}")
-        if self.eta_auto_floor_step and self.eta_auto_rule not in OUTCOME_RULES:
-            raise ConfigError("eta_auto_floor_step", f"bounds the outcome rules {OUTCOME_RULES}; the rule "
-                              f"{self.eta_auto_rule!r} clips η* to eta_auto_range instead")
-        lo, hi = self.eta_auto_range
-        if not 0.0 <= lo <= hi <= 1.0:
-            raise ConfigError("eta_auto_range", f"must satisfy 0 <= low <= high <= 1, got {self.eta_auto_range}")
+        ratios.check_auto(self)
 
     def _validate_tp(self) -> None:
         if self.primitives is None:

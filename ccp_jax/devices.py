@@ -8,15 +8,22 @@ per member instead of computing padded copies (`grid_devices`). Measured with
 `experiments/bench/cpu_devices.py` on this project's 2-core CPU, paper epoch:
 12 members 1.45× and 3 members 1.52× the runs per second of one device.
 Results do not depend on it beyond float rounding (`tests/test_multidevice.py`).
+
+Also here, the other choices measured on CPUs only: how many grid members one
+device advances together (`default_members_at_once`) and the compile options
+of the run's init (`CPU_INIT_OPTIONS`).
 """
 from __future__ import annotations
 
 import math
 import os
-from typing import Literal, Sequence, Union
+from typing import TYPE_CHECKING, Literal, Sequence, Union
 
 import jax
 import numpy as np
+
+if TYPE_CHECKING:
+    from ccp_jax.config import Config
 
 CPU_DEVICES = "xla_force_host_platform_device_count"  # the XLA flag that splits the host CPU into devices
 CpuDevices = Union[int, Literal["auto"]]
@@ -42,7 +49,7 @@ def split_host_cpu(devices: CpuDevices = "auto", grid_size: int | None = None) -
 
     "auto" with a `grid_size`: exactly the count `grid_devices` picks for that grid of up to twice the
     available cores (`cpu_devices_for`), so that no device sits idle: an exposed device the grid leaves
-    unused slowed the others (2-core CPU, SPEC §7's epoch: one 3-room run 2.65–3.0 s per epoch on the
+    unused slowed the others (2-core CPU, docs/design.md#the-learning-yardstick's epoch: one 3-room run 2.65–3.0 s per epoch on the
     unsplit CPU, 3.4–4.1 s with 4 devices exposed; a 2-room grid of 3 on 3 devices 3.9–4.0 s with 3
     exposed, 4.4–4.7 s with 4). "auto" without a grid size (a process that cannot say which grids it will
     train): twice the available cores. Returns False, changing nothing, once JAX's backends are running (the flag is read
@@ -105,3 +112,40 @@ def pad_grid(x, size: int) -> np.ndarray:
     not divide over its devices hold (their results are dropped)."""
     x = np.asarray(x)
     return np.concatenate([x, np.repeat(x[-1:], size - len(x), axis=0)])
+
+
+# The init runs once; on a CPU its program (mostly the networks' random initialisers, vmapped) compiles 2-5x
+# faster at LLVM's O1 (experiments/bench/init_compile.py): the same bits on the maze, MJX's reset by ulps.
+CPU_INIT_OPTIONS = {"xla_backend_optimization_level": 1}
+
+
+# On a CPU, how many floats one layer's stacked critic activations of a device's vmapped members may take
+# (members × critic slots × batch × widest layer): 12 slots of the learning yardstick's [64, 64] at batch 256
+# (docs/design.md#the-learning-yardstick), ≈ 0.75 MB. Measured on the 2-core CPU (experiments/bench/README.md, "Members vmapped on a CPU").
+CPU_VMAP_FLOATS = 12 * 256 * 64
+
+
+def default_members_at_once(devices: Sequence[jax.Device], local_members: int, config: Config,
+                            cores_per_device: float | None = None) -> int:
+    """How many grid members one device advances together (vmapped) by default.
+
+    On a GPU/TPU all of them: the batching fills the device. On a CPU device
+    with several cores (`cores_per_device`, default: the available cores over
+    the process's CPU devices) as many as keep one layer's stacked critic
+    activations within `CPU_VMAP_FLOATS`: XLA runs a small run's ops one core
+    each, and vmapped members' larger ops use the cores better (a [64, 64] SAC
+    grid of 4 on one 2-core device: 1.4× faster than one at a time), until the
+    batched working set leaves the cache (3-agent CSAC, 16 members: each update
+    ≈ 20 % slower). On a CPU split into a device per core (the CLI's split for
+    grids) one member at a time: there vmapping was 7–10 % slower.
+    """
+    from ccp_jax.learner import critic_slots  # local: this module loads before JAX starts and stays light
+
+    if devices[0].platform != "cpu":
+        return local_members
+    if cores_per_device is None:
+        cores_per_device = available_cores() / len(jax.local_devices(backend="cpu"))
+    if cores_per_device < 2:
+        return 1
+    per_member = critic_slots(config) * config.batch_size * max(config.hidden)
+    return max(1, CPU_VMAP_FLOATS // per_member)

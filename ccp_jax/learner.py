@@ -18,8 +18,9 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from ccp_jax import losses
 from ccp_jax import buffer as replay
+from ccp_jax import eta as ratios
+from ccp_jax import losses
 from ccp_jax.buffer import ReplayBuffer, Transition
 from ccp_jax.config import Config
 from ccp_jax.networks import Actor, TwinCritic, squashed_gaussian
@@ -198,13 +199,11 @@ def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
         else:
             lo, scale = b_lo, b_hi - b_lo
         q_hat = losses.normalise(q_pair, config.norm_eps, lo[..., None], scale[..., None])
-        # "auto" (NaN) members use η* from the running ranges, clipped; others their own η.
-        auto = jnp.clip(losses.eta_star(e_hi[:, 0] - e_lo[:, 0], e_hi[:, 1] - e_lo[:, 1], config.norm_eps,
-                                        config.eta_auto_next_weight), *config.eta_auto_range)
-        eta_used = jnp.where(has_next & cooperative, jnp.where(jnp.isnan(eta), auto, eta), 1.0)
+        eta_used = ratios.actor_eta(eta, e_hi[:, 0] - e_lo[:, 0], e_hi[:, 1] - e_lo[:, 1], has_next & cooperative,
+                                    config)
         keep = ready[:, None]
         new = NormState(lo=jnp.where(keep, e_lo, norm.lo), hi=jnp.where(keep, e_hi, norm.hi))
-        eta_star = jnp.where(has_next, losses.eta_star(b_hi[:, 0] - b_lo[:, 0], b_hi[:, 1] - b_lo[:, 1],
+        eta_star = jnp.where(has_next, ratios.eta_star(b_hi[:, 0] - b_lo[:, 0], b_hi[:, 1] - b_lo[:, 1],
                                                         config.norm_eps), 1.0)
         diag = dict(eta_star=eta_star, eta_used=eta_used, range_own=scale[:, 0],
                     range_next=jnp.where(has_next, scale[:, 1], 0.0))
@@ -351,9 +350,10 @@ def train_loops(learner: Learner, agents: AgentState, buffer: ReplayBuffer, eta:
 
     Loop i draws from the i-th key of `key`; all loops' batch indices and noise are drawn at once,
     before the loop (the same draws as inside it). Drawn inside it, each is a small random-number
-    loop run in series with the update: on a CPU the 1000 updates of SPEC §7's epoch ran ≈ 20 %
-    faster without them, the whole epoch 2 – 13 %. Loop i also gathers loop i + 1's batch (the
-    same batches), so that gather overlaps the update instead of preceding it (experiments/bench/epoch_versions.py).
+    loop run in series with the update: on a CPU the 1000 updates of the yardstick's epoch
+    (docs/design.md#the-learning-yardstick) run ≈ 20 % faster without them, the whole epoch 2 – 13 %.
+    Loop i also gathers loop i + 1's batch (the same batches), so that gather overlaps the update
+    instead of preceding it (experiments/bench/epoch_versions.py).
     """
     loop_keys = jax.vmap(jax.random.split)(jax.random.split(key, loops))
     idx = jax.vmap(lambda k: replay.sample_indices(buffer.size, k, batch_size))(loop_keys[:, 0])

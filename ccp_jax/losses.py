@@ -1,4 +1,4 @@
-"""The loss terms of CSAC (SPEC §1) as pure functions on arrays.
+"""The loss terms of CSAC (docs/design.md#the-method) as pure functions on arrays.
 
 Everything here is for one agent and one batch of B samples; `learner.py`
 assembles them over the stacked agents.
@@ -16,7 +16,7 @@ def soft_target(reward: jax.Array, next_q: jax.Array, next_log_prob: jax.Array, 
     reward, next_q (min of the target twin at s', a' ~ π_n(s')), next_log_prob,
     terminal, completed: [B]. The bootstrap is the soft value Q̄ − α log π,
     except after a true termination (0) and where the channel's subtask is
-    completed at s': its reward then stays 1 forever (SPEC §1), so the value is
+    completed at s': its reward then stays 1 forever (docs/design.md#decisions-the-paper-leaves-open), so the value is
     known exactly, `absorbing_value` = channel reward / (1 − γ).
     """
     soft = next_q - alpha * next_log_prob
@@ -61,12 +61,3 @@ def sac_actor_loss(log_prob: jax.Array, q: jax.Array, alpha: jax.Array) -> jax.A
 def alpha_loss(log_alpha: jax.Array, log_prob: jax.Array, target_entropy: float) -> jax.Array:
     """RLkit's temperature loss −mean(log α · (log π + H̄)), log π held constant."""
     return -jnp.mean(log_alpha * jax.lax.stop_gradient(log_prob + target_entropy))
-
-
-def eta_star(range_own: jax.Array, range_next: jax.Array, eps: float, next_weight: float = 1.0) -> jax.Array:
-    """The ratio that recovers the sum Q_n + κ Q_{n+1}: Ran(Q_n) / (Ran(Q_n) + κ Ran(Q_{n+1})), κ = `next_weight`.
-
-    κ = 1 is the appendix's η*; κ > 1 weighs the next critic more than the plain sum does.
-    """
-    return range_own / (range_own + next_weight * range_next + eps)
-

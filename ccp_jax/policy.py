@@ -12,7 +12,7 @@ from ccp_jax.collect import agent_of, policy_mean_and_log_std
 from ccp_jax.config import Config
 from ccp_jax.envs import make_env
 from ccp_jax.networks import Actor, deterministic_action
-from ccp_jax.trainer import make_grid_train
+from ccp_jax.grid import make_grid_train
 
 
 def load_actors(run_dir: str | Path, config: Config, epoch: int | None = None) -> tuple[Actor, Any]:

@@ -26,10 +26,11 @@ from tqdm.auto import tqdm
 
 from ccp_jax import checkpoint, loggers, outputs
 from ccp_jax.devices import CpuDevices, grid_devices, split_host_cpu
-from ccp_jax.config import (PRESETS, Config, ConfigError, CoopScale, EtaAutoRule, NetworkInit, NextAction, Normaliser, PresetName, TanhLogProb,
-                             make_config, parse_eta, parse_eta_vector)
+from ccp_jax.config import (PRESETS, Config, ConfigError, CoopScale, NetworkInit, NextAction, Normaliser, PresetName, TanhLogProb,
+                             make_config)
+from ccp_jax.eta import EtaAutoRule, parse_eta, parse_eta_vector
 from ccp_jax.envs import make_env, user_env
-from ccp_jax.trainer import check_members_at_once, make_grid_train
+from ccp_jax.grid import check_members_at_once, make_grid_train
 from ccp_jax.tp.primitives import primitives_config
 from ccp_jax.tp.trainer import make_tp_grid
 

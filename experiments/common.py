@@ -21,8 +21,9 @@ import numpy as np
 import tyro
 
 from ccp_jax import checkpoint
-from ccp_jax.config import AUTO, Config, ConfigError, make_config
+from ccp_jax.config import Config, ConfigError, make_config
 from ccp_jax.devices import split_host_cpu
+from ccp_jax.eta import AUTO
 from envs_mjx import configure_cpu
 
 # Domains: (env, rooms); the paper's four, and Brax's pusher (issue 11). Peg and pusher have two fixed stages.

@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Optional
 
 from ccp_jax import plot
-from ccp_jax.config import AUTO
+from ccp_jax.eta import AUTO
 from common import ScaleName, best_swept_eta, cli, merged_summary, results_folder
 from table1 import finished_runs, train_domain
 

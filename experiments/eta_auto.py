@@ -36,7 +36,7 @@ from typing import Literal, Optional
 
 import numpy as np
 
-from ccp_jax.config import AUTO
+from ccp_jax.eta import AUTO
 from common import (DOMAINS, SCALES, Scale, ScaleName, best_swept_eta, cli, eta_label, final_success, mean_std,
                     merged_summary, read_json, results_folder, run_grid, swept_runs, write_text)
 from table1 import run_dir, train_domain

@@ -21,7 +21,8 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ccp_jax import plot
-from ccp_jax.config import AUTO, ConfigError, parse_eta_vector
+from ccp_jax.config import ConfigError
+from ccp_jax.eta import AUTO, parse_eta_vector
 from common import (PAPER_INDEPENDENT, SCALES, ScaleName, best_swept_eta, cli, final_success, fmt, mean_std,
                     merged_summary, read_json, results_folder, run_grid, swept_runs, write_text)
 

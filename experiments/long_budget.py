@@ -35,7 +35,7 @@ from typing import Literal, Optional
 import numpy as np
 
 from ccp_jax import outputs, plot
-from ccp_jax.config import AUTO
+from ccp_jax.eta import AUTO
 from common import (ALGO_NAMES, RESULTS, SCALES, ScaleName, cli, final_ends, fmt, mean_std, read_json, run_grid, success_at,
                     write_text)
 

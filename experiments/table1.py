@@ -27,7 +27,7 @@ from typing import Literal, Optional
 
 import numpy as np
 
-from ccp_jax.config import AUTO, parse_eta
+from ccp_jax.eta import AUTO, parse_eta
 from common import (ALGO_NAMES, DOMAINS, PAPER_TABLE1, SCALES, ScaleName, cli, eta_label, final_ends, final_success, fmt, mean_std,
                     merged_summary, read_json, results_folder, run_grid, swept_folder, swept_runs, write_text)
 

@@ -12,7 +12,7 @@ from ccp_jax import checkpoint
 from ccp_jax.config import ConfigError, make_config
 from ccp_jax.envs import make_env
 from ccp_jax.train import main, run
-from ccp_jax.trainer import make_grid_train
+from ccp_jax.grid import make_grid_train
 
 # 3 epochs, 2 members; the running normaliser and an "auto" ratio (its outcome rule's, which moves every
 # epoch) put their state into the checkpoint too.

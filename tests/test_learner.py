@@ -15,7 +15,7 @@ from ccp_jax.buffer import Transition
 from ccp_jax.config import make_config
 from ccp_jax.learner import init_agents, make_learner, make_networks, train_loops
 from ccp_jax.networks import sample_action
-from ccp_jax.trainer import CPU_INIT_OPTIONS
+from ccp_jax.devices import CPU_INIT_OPTIONS
 
 OBS, ACT, B = 5, 2, 16
 

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 from ccp_jax import losses
+from ccp_jax.eta import eta_star
 
 EPS = 1e-6
 
@@ -104,6 +105,6 @@ def test_alpha_loss_value_and_gradient():
 
 
 def test_eta_star():
-    assert float(losses.eta_star(jnp.float32(3.0), jnp.float32(1.0), EPS)) == pytest.approx(3.0 / 4.0, rel=1e-5)
+    assert float(eta_star(jnp.float32(3.0), jnp.float32(1.0), EPS)) == pytest.approx(3.0 / 4.0, rel=1e-5)
     # κ = 4 weighs the next critic's range four times: 3 / (3 + 4 · 1)
-    assert float(losses.eta_star(jnp.float32(3.0), jnp.float32(1.0), EPS, 4.0)) == pytest.approx(3.0 / 7.0, rel=1e-5)
+    assert float(eta_star(jnp.float32(3.0), jnp.float32(1.0), EPS, 4.0)) == pytest.approx(3.0 / 7.0, rel=1e-5)

@@ -8,7 +8,7 @@ SCRIPT = textwrap.dedent("""
     import jax, numpy as np
     from ccp_jax.config import make_config
     from ccp_jax.envs import make_env
-    from ccp_jax.trainer import make_grid_train
+    from ccp_jax.grid import make_grid_train
     assert jax.device_count() == 4, jax.devices()
     config = make_config("tiny", etas=((0.1,), (0.9,), (0.5,)), seeds=(0, 1))  # 6 members: padded to 8
     eta, seed = config.grid_arrays()

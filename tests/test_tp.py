@@ -9,7 +9,7 @@ import pytest
 
 from ccp_jax.config import Config, ConfigError, make_config
 from ccp_jax.train import Args, config_from_args, main
-from ccp_jax.trainer import GridTrainer
+from ccp_jax.grid import GridTrainer
 from ccp_jax.tp.networks import Proximity, TransitionPolicy, Value, norm_init, normalise
 from ccp_jax.tp.ppo import gae
 from ccp_jax.tp.primitives import Primitives

@@ -14,7 +14,8 @@ from ccp_jax.envs import make_env
 from ccp_jax.networks import Actor
 from ccp_jax.train import main
 from ccp_jax.learner import critic_slots
-from ccp_jax.trainer import default_members_at_once, make_grid_train
+from ccp_jax.devices import default_members_at_once
+from ccp_jax.grid import make_grid_train
 from toy_env import Line
 
 GRID = make_config("tiny", rooms=2, etas=((0.1,), (0.9,)), seeds=(0, 1), total_steps=400)
@@ -318,7 +319,7 @@ def test_env_is_traced_once_per_call_kind_on_one_device():
 
 
 def test_outcome_rule_moves_eta_against_hand_values():
-    from ccp_jax.trainer import outcome_eta
+    from ccp_jax.eta import outcome_eta
 
     def move(eta, stages, successes, rate=0.1, bounds=(0.05, 0.95), up_rate=None, rule="outcomes", gate=None,
              floor_step=0.0):
@@ -371,10 +372,11 @@ def test_outcome_rule_moves_eta_against_hand_values():
 
 def test_the_floor_step_reaches_the_outcome_rule(monkeypatch):
     """`eta_auto_floor_step` is what the epoch's `outcome_eta` receives (traced only, nothing compiled)."""
+    from ccp_jax import eta as eta_module
     from ccp_jax import trainer as trainer_module
 
-    seen, real = [], trainer_module.outcome_eta
-    monkeypatch.setattr(trainer_module, "outcome_eta", lambda *a, **k: seen.append(a[8]) or real(*a, **k))
+    seen, real = [], eta_module.outcome_eta
+    monkeypatch.setattr(eta_module, "outcome_eta", lambda *a, **k: seen.append(a[8]) or real(*a, **k))
     config = make_config("tiny", rooms=3, etas=(("auto",),), eta_auto_rule="trusted", eta_auto_floor_step=0.25)
     run = trainer_module.make_train(config, Line(3, config.max_episode_steps))
     jax.eval_shape(run.train_step, jax.eval_shape(run.init, 0), jnp.full((3,), jnp.nan))
@@ -382,7 +384,7 @@ def test_the_floor_step_reaches_the_outcome_rule(monkeypatch):
 
 
 def test_successor_succeeded_looks_two_stages_ahead():
-    from ccp_jax.trainer import successor_succeeded
+    from ccp_jax.eta import successor_succeeded
 
     def check(stages, successes):
         return np.asarray(successor_succeeded(jnp.asarray(stages, jnp.float32), jnp.float32(successes))).tolist()
@@ -396,7 +398,7 @@ def test_successor_succeeded_looks_two_stages_ahead():
 def test_outcome_rule_trains_auto_members_at_its_ratios_epoch_by_epoch(rule):
     """An "auto" member trains epoch k + 1 at `outcome_eta` of epoch k's training episodes (with "gated",
     under the gate of every epoch's successes so far); a numeric member beside it keeps its ratio."""
-    from ccp_jax.trainer import outcome_eta, successor_succeeded
+    from ccp_jax.eta import outcome_eta, successor_succeeded
 
     config = make_config("tiny", rooms=2, etas=(("auto",), (0.3,)), seeds=(0,), total_steps=600,
                          eta_auto_rule=rule, eta_auto_rate=0.2)

@@ -19,7 +19,8 @@ from flax import struct
 
 from ccp_jax.collect import EvalMetrics, TracedOnce, per_episode
 from ccp_jax.config import Config
-from ccp_jax.trainer import GridTrainer, Trainer
+from ccp_jax.grid import GridTrainer
+from ccp_jax.trainer import Trainer
 from ccp_jax.tp.networks import (Proximity, RunningNorm, TransitionPolicy, Value, norm_init, norm_update,
                                  normalise)
 from ccp_jax.tp.ppo import PPOMetrics, gae, log_prob, make_ppo_update

@@ -19,7 +19,7 @@ from unittest import mock
 
 import tyro
 
-import ccp_jax.trainer as trainer_module
+import ccp_jax.grid as grid_module
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from timed import Alternating, TimedGrid  # noqa: E402
@@ -28,7 +28,7 @@ from envs_mjx import configure_cpu  # noqa: E402
 
 def main(args: Alternating) -> None:
     config = args.config()
-    with mock.patch.object(trainer_module, "cpu_compiler_options", lambda env: {}):
+    with mock.patch.object(grid_module, "cpu_compiler_options", lambda env: {}):
         off = TimedGrid(config)
     on = TimedGrid(config)
     assert on.trainer.compiler_options and not off.trainer.compiler_options

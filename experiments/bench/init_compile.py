@@ -5,7 +5,7 @@
 
 The init (agents' networks and optimisers, replay buffers, the envs' first states, vmapped over the grid)
 runs once, but its program, mostly vmapped random initialisers, took as long to compile as a whole epoch.
-`GridTrainer` compiles it with `trainer.CPU_INIT_OPTIONS` (LLVM O1; for the maze also the fusion emitters
+`GridTrainer` compiles it with `devices.CPU_INIT_OPTIONS` (LLVM O1; for the maze also the fusion emitters
 of its epoch). Both versions are traced, then compiled once each in this one process, O1 first (so one-time
 costs of a process's first compile count against it), with no persistent compilation cache (a second compile
 of the same program would hit JAX's in-memory cache); the table gives each one's XLA compile time (tracing
@@ -24,7 +24,8 @@ import tyro
 
 from ccp_jax.config import make_config
 from ccp_jax.envs import make_env
-from ccp_jax.trainer import make_grid_train, make_train
+from ccp_jax.grid import make_grid_train
+from ccp_jax.trainer import make_train
 from envs_mjx import configure_cpu
 
 

@@ -23,7 +23,7 @@ import ccp_jax.trainer as trainer_module
 from ccp_jax.collect import make_evaluate
 from ccp_jax.config import Config, make_config
 from ccp_jax.envs import make_env
-from ccp_jax.trainer import make_grid_train
+from ccp_jax.grid import make_grid_train
 from envs_mjx import XLA_CPU_EMITTERS, XLA_CPU_FLAG
 from envs_mjx.maze import Maze
 
@@ -156,7 +156,7 @@ def updates_per_epoch(args: SameWork) -> int:
 
 def our_sac(args: SameWork, seeds: Sequence[int], evaluate: bool, members_at_once: int | None = None) -> TimedGrid:
     """Our grid trainer, one agent (`algo="sac"`), on `args`' work: one member per seed (`members_at_once`:
-    as `make_grid_train`'s, default `trainer.default_members_at_once`)."""
+    as `make_grid_train`'s, default `devices.default_members_at_once`)."""
     config = make_config(
         "paper", rooms=args.rooms, algo="sac", hidden=args.hidden, batch_size=args.batch,
         num_envs=args.num_envs, steps_per_epoch=args.epoch_steps, train_loops_per_epoch=updates_per_epoch(args),

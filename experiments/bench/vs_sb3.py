@@ -44,7 +44,8 @@ import ccp_jax.trainer as trainer_module
 from ccp_jax import buffer as replay
 from ccp_jax.config import make_config
 from ccp_jax.learner import make_learner, make_networks, train_loops
-from ccp_jax.trainer import make_grid_train, make_train
+from ccp_jax.grid import make_grid_train
+from ccp_jax.trainer import make_train
 from envs_mjx.maze import Maze
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
