@@ -14,7 +14,7 @@ import common  # noqa: E402
 import compare  # noqa: E402
 import curves  # noqa: E402
 import independent_ratios  # noqa: E402
-import long_budget  # noqa: E402
+import paper_budget  # noqa: E402
 import table1  # noqa: E402
 from ccp_jax.config import ConfigError  # noqa: E402
 
@@ -369,95 +369,6 @@ def test_paper_projection_builds_table1s_grids_and_sums_the_sweeps():
         pp.main(pp.Args(scale="paper", domains=("maze9",)))
 
 
-def test_long_budget_trains_its_grids_then_tables_success_at_milestones_and_per_seed(tmp_path, monkeypatch):
-    calls = []
-    monkeypatch.setattr(long_budget, "run_grid", lambda config, out, keep_checkpoints: calls.append((config, out)))
-    args = long_budget.Args(scale="smoke", seeds=2, total_steps=600, milestones=(200, 400, 600, 150_000), out=tmp_path)
-    with pytest.raises(SystemExit, match="^error: out: no runs in"):
-        long_budget.main(args)
-    with pytest.raises(ConfigError, match="^seeds: at least one"):  # not the scale's 2 seeds in its place
-        long_budget.main(dataclasses.replace(args, seeds=0))
-    (batch, batch_dir), (floor, floor_dir), (half, half_dir) = calls
-    assert (batch_dir.name, batch.etas, batch.normaliser) == ("csac_batch", ((0.1,), ("auto",)), "batch")
-    assert (floor_dir.name, floor.etas, floor.normaliser) == ("csac_auto_floor", (("auto",),), "floor")
-    assert (half_dir.name, half.etas, half.normaliser) == ("csac_eta_0.5", ((0.5,),), "batch")
-    assert batch.seeds == floor.seeds == half.seeds == (0, 1) and {c.total_steps for c, _ in calls} == {600}
-    _fake_run(batch_dir, batch, {0: [0, 1, 1], 1: [0, 0, 0], 2: [1, 1, 1], 3: [0, 1, 1]})
-    _fake_run(floor_dir, floor, {0: [0, 0, 1], 1: [1, 1, 1]})
-    _fake_run(half_dir, half, {0: [1, 1, 1], 1: [1, 1, 1]})
-    lines = long_budget.main(dataclasses.replace(args, plot_only=True)).splitlines()
-    # columns: η = 0.1, η = 0.5, then auto (batch), auto (floor)
-    assert "| 200 | – | 0.00 (2) | 1.00 (2) | 0.50 (2) | 0.50 (2) |" in lines
-    assert "| 600 | – | 0.50 (2) | 1.00 (2) | 1.00 (2) | 1.00 (2) |" in lines
-    assert "| 150,000 | 0.33 | – | – | – | – |" in lines  # the prototype's value; no run got there
-    # a success ends in room 2 and a failure in the pocket (see _fake_run)
-    # the mean 1-based room the last evaluations end in (a success in room 2, a failure in room 1 and the pocket)
-    assert "| CSAC η = 0.1 | 0.33 ± 0.33 | 0.67 0.00 | 400 never | 1.67 (0.33) 1.00 (1.00) |" in lines
-    assert "| auto, floor normaliser | 0.67 ± 0.33 | 0.33 1.00 | 600 200 | 1.33 (0.67) 2.00 (0.00) |" in lines
-    assert (tmp_path / "success.png").stat().st_size > 0 and (tmp_path / "table.md").read_text().splitlines() == lines
-
-
-def test_long_budget_on_three_rooms_trains_its_ratios_in_one_grid_without_the_prototype(tmp_path, monkeypatch):
-    calls = []
-    monkeypatch.setattr(long_budget, "run_grid", lambda config, out, keep_checkpoints: calls.append((config, out)))
-    args = long_budget.Args(rooms=3, scale="smoke", total_steps=400, milestones=(200, 400), out=tmp_path)
-    with pytest.raises(SystemExit, match="^error: out: no runs in"):
-        long_budget.main(args)
-    (grid, grid_dir), (own, own_dir), (floor, floor_dir), (naive, naive_dir), (sac, sac_dir) = calls
-    assert (grid_dir, grid.rooms, grid.etas) == (tmp_path / "csac_batch", 3, ((0.1,), (0.3,), ("auto",)))
-    assert (grid.seeds, grid.total_steps, grid.coop_scale) == ((0, 1, 2), 400, "unit")  # the plan's 3 seeds
-    assert (own_dir.name, own.etas, own.coop_scale, own.seeds) == ("csac_own_scale", ((0.3,), ("auto",)), "own",
-                                                                    (0, 1, 2))
-    assert (floor_dir.name, floor.etas, floor.coop_scale, floor.normaliser, floor.norm_floor) == (
-        "csac_own_floor", ((0.3,),), "own", "floor", 5.0)
-    assert (naive_dir.name, naive.algo, naive.num_agents, naive.seeds, naive.total_steps) == ("naive", "naive", 3,
-                                                                                               (0, 1, 2), 400)
-    assert (sac_dir.name, sac.algo, sac.num_agents, sac.seeds) == ("sac", "sac", 1, (0, 1, 2))
-    # a numeric ratio's row names its normaliser only when it is not the paper's
-    assert long_budget.variant((0.3,), {"coop_scale": "own", "normaliser": "floor", "norm_floor": 5.0}) == (
-        "CSAC η = 0.3, floor normaliser 5, one temperature")
-    assert long_budget.Args(rooms=3).folder == Path(long_budget.__file__).parent / "results" / "long_3room"
-    _fake_run(grid_dir, grid, {m: [0, 1] if m == 3 else [0, 0] for m in range(9)})  # member 3: η = 0.3, seed 0
-    _fake_run(own_dir, own, {m: [1, 1] for m in range(6)})
-    _fake_run(naive_dir, naive, {0: [0, 0], 1: [0, 1], 2: [0, 0]})
-    lines = long_budget.main(dataclasses.replace(args, plot_only=True)).splitlines()
-    assert ("| env steps | CSAC η = 0.1 | CSAC η = 0.3 | CSAC η = 0.3, one temperature | auto, batch normaliser "
-            "| auto, batch normaliser, one temperature | Naive |") in lines  # no prototype column; baselines last
-    assert "| 400 | 0.00 (3) | 0.33 (3) | 1.00 (3) | 0.00 (3) | 1.00 (3) | 0.33 (3) |" in lines
-    assert "| Naive | 0.17 ± 0.24 | 0.00 0.50 0.00 | never 400 never | 1.00 (1.00) 2.00 (0.50) 1.00 (1.00) |" in lines
-    assert "| CSAC η = 0.3 | 0.17 ± 0.24 | 0.50 0.00 0.00 | 400 never never | 2.00 (0.50) 1.00 (1.00) 1.00 (1.00) |" in lines
-
-
-def test_long_budget_first_seed_trains_chosen_runs_into_seed_folders_and_pools_them(tmp_path, monkeypatch):
-    calls = []
-    monkeypatch.setattr(long_budget, "run_grid", lambda config, out, keep_checkpoints: calls.append((config, out)))
-    args = long_budget.Args(rooms=3, scale="smoke", total_steps=400, milestones=(400,), out=tmp_path,
-                            runs=("csac_own_scale",), first_seed=3)
-    with pytest.raises(SystemExit, match="^error: runs: unknown \\['csac_own'\\]"):
-        long_budget.main(dataclasses.replace(args, runs=("csac_own",)))
-    assert not calls  # refused before anything trains
-    with pytest.raises(SystemExit, match="^error: out: no runs in"):
-        long_budget.main(args)
-    [(more, more_dir)] = calls  # csac_batch is not in --runs
-    kept = []
-    monkeypatch.setattr(long_budget, "run_grid", lambda config, out, keep_checkpoints: kept.append(keep_checkpoints))
-    for keep in (False, True):
-        with pytest.raises(SystemExit, match="^error: out: no runs in"):
-            long_budget.main(dataclasses.replace(args, keep_checkpoints=keep))
-    assert kept == [False, True]
-    assert (more_dir, more.seeds, more.coop_scale) == (tmp_path / "csac_own_scale_seeds3to5", (3, 4, 5), "own")
-    first = dataclasses.replace(more, seeds=(0, 1, 2))
-    _fake_run(tmp_path / "csac_own_scale", first, {m: [1, 1] if m < 3 else [0, 0] for m in range(6)})
-    _fake_run(more_dir, more, {m: [0, 0] if m else [0, 1] for m in range(6)})  # member 0: η = 0.3, seed 3
-    # seeds 4-5 again (an overlapping --first-seed): counted once, from the lower folder
-    _fake_run(tmp_path / "csac_own_scale_seeds4to5", dataclasses.replace(more, seeds=(4, 5)),
-              {m: [1, 1] for m in range(4)})
-    lines = long_budget.main(dataclasses.replace(args, plot_only=True)).splitlines()
-    assert "| 400 | 0.67 (6) | 0.00 (6) |" in lines  # seeds 0-2 and 3-5 pooled per ratio
-    assert ("| CSAC η = 0.3, one temperature | 0.58 ± 0.45 | 1.00 1.00 1.00 0.50 0.00 0.00 | 200 200 200 400 never "
-            "never |") in [line.rsplit(" | ", 1)[0] + " |" for line in lines]
-
-
 def test_compare_pools_folders_per_variant_and_tests_each_row_against_the_first(tmp_path):
     scale = common.SCALES["smoke"]
     steps = scale.config("maze2", "csac").steps_per_epoch
@@ -546,12 +457,11 @@ def test_scripts_split_the_cpu_for_the_largest_grid_they_train(monkeypatch):
     assert eta_auto.largest_grid(parse("eta_auto.py")) == 18
     assert eta_auto.largest_grid(parse("eta_auto.py", "--no-sweep", "--fresh-seeds", "12")) == 24
     assert eta_auto.largest_grid(parse("eta_auto.py", "--no-sweep")) == 3
-    # long_budget: 3 rooms' csac_batch grid is 3 ratios x 3 seeds; 2 rooms' 2 x 6; a chosen run; more seeds.
-    assert long_budget.largest_grid(parse("long_budget.py", "--rooms", "3")) == 9
-    assert long_budget.largest_grid(parse("long_budget.py")) == 12
-    assert long_budget.largest_grid(parse("long_budget.py", "--runs", "csac_eta_0.5")) == 6
-    assert long_budget.largest_grid(parse("long_budget.py", "--rooms", "3", "--seeds", "2")) == 6
-    assert long_budget.largest_grid(parse("long_budget.py", "--plot-only")) is None
+    # paper_budget: one cell's seeds (5), or a chunk of them; a report trains nothing.
+    assert paper_budget.largest_grid(parse("paper_budget.py")) == 5
+    assert paper_budget.largest_grid(parse("paper_budget.py", "--seeds-per-grid", "3")) == 3
+    assert paper_budget.largest_grid(parse("paper_budget.py", "--cells", "maze4/csac_ramp", "maze4/sac")) == 5
+    assert paper_budget.largest_grid(parse("paper_budget.py", "--report-only")) is None
     # independent_ratios: 3 x 3 pairs x 3 seeds, or the pairs asked for.
     assert independent_ratios.largest_grid(parse("independent_ratios.py")) == 27
     assert independent_ratios.largest_grid(parse("independent_ratios.py", "--pairs", "0.1,1.0", "1.0,0.1")) == 6
