@@ -1,7 +1,7 @@
 """On-device replay buffers: one ring buffer per agent, stacked on a leading axis.
 
 A transition goes to the buffer of the agent that acted, i.e. of the stage of
-the state where the action was taken (SPEC §1, Algorithm 1).
+the state where the action was taken (docs/design.md#the-method; the paper's Algorithm 1).
 """
 from __future__ import annotations
 

@@ -177,7 +177,7 @@ def make_evaluate(config: Config, env: Env, actor: Actor, episodes: int | None =
                   stochastic: bool = False) -> Callable:
     """`evaluate(actor_params, key) -> EvalMetrics` over `episodes` (default `config.eval_episodes`) episodes.
 
-    Actions are the policies' deterministic means (SPEC §3), or with `stochastic` sampled as in
+    Actions are the policies' deterministic means (docs/design.md#hyperparameters), or with `stochastic` sampled as in
     training. Episodes run in parallel until all are done (or the time limit); a finished
     episode is frozen rather than reset.
     """

@@ -1,4 +1,4 @@
-"""Checks that an env meets the contract of `envs_mjx` (see its docstring; SPEC §1, §4).
+"""Checks that an env meets the contract of `envs_mjx` (see its docstring; docs/design.md#environments-and-their-contract).
 
     from envs_mjx.contract import check_env
     check_env(MyEnv())            # raises EnvContractError listing every broken rule

@@ -1,6 +1,6 @@
 """N-room maze with a differential-drive robot and a dead-end pocket behind every inner wall.
 
-Layout (SPEC §4). Rooms are 5 m x 5 m, left to right: room k spans x in [5k, 5k + 5],
+Layout (docs/design.md#environments-and-their-contract). Rooms are 5 m x 5 m, left to right: room k spans x in [5k, 5k + 5],
 y in [0, 5]. The inner wall at x_k = 5k (k = 1 .. N-1) has two 1 m doors, y in [1, 2]
 (low) and [3, 4] (high). One of them is a dead end: behind it, in room k, a pocket
 2 m deep closed at mid-height (y = 2.5). The dead end is the low door for odd k and the
@@ -72,8 +72,8 @@ class MazeGeometry:
     # in [-1, 1] drives backwards too (v = a[0] v_max); otherwise only forwards, v = (a[0] + 1)/2 v_max,
     # so a policy's zero-mean start already drives. slide: a blocked step spends what is left of
     # it along the wall it touched (one collide-and-slide pass) instead of stopping there.
-    # The defaults are the ones that reproduce SPEC §7's reference table (experiments/yardstick.md,
-    # session 28); sessions 1-27 ran reverse=True, slide=False.
+    # The defaults reproduce the prototype's learning curve (docs/design.md#the-learning-yardstick); the
+    # reversing robot (reverse=True, slide=False) is how the maze's early results ran (docs/lab-notes.md).
     reverse: bool = False
     slide: bool = True
 
@@ -208,7 +208,7 @@ def _time_of_impact(pos: jax.Array, disp: jax.Array, walls: jax.Array, radius: f
 
 
 class Maze(Env):
-    """The N-room maze (SPEC §4) on the `brax.envs.base.Env` API; pure, jit- and vmap-able.
+    """The N-room maze (docs/design.md#environments-and-their-contract) on the `brax.envs.base.Env` API; pure, jit- and vmap-able.
 
     Args:
       rooms: N >= 1, the number of rooms and of stages.

@@ -1,6 +1,6 @@
 """Peg in hole with a Panda arm on MuJoCo MJX: grasp, then insert (two stages).
 
-The paper's second domain (SPEC §4), as a pure-functional ``brax.envs.base.Env``.
+The paper's second domain (docs/peg.md), as a pure-functional ``brax.envs.base.Env``.
 
 Scene (``assets/panda_peg.xml``; all numbers in metres, world frame, x from the robot
 towards the block): a block whose front face is at x = 0.60 has a 20 mm square
@@ -47,7 +47,7 @@ orientation (4; the block is fixed, so its velocities are identically zero and l
 out); finger opening and its rate (2); peg centre minus grip point (3); inserted
 position minus peg centre (3).
 
-Rewards (SPEC §4; k = ``reward_k`` = 20 / m):
+Rewards (docs/peg.md; k = ``reward_k`` = 20 / m):
   stage 0 (grasp):  R_1 = exp(-k |grip - peg centre|),      R_2 = 0
   stage 1 (insert): R_1 = 1,  R_2 = exp(-k |peg centre - inserted position|)
   success:          R_1 = R_2 = 1, episode done.

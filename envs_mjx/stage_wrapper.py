@@ -159,7 +159,7 @@ class StageWrapper(Env):
         return stage.astype(jnp.int32)
 
     def _rewards(self, inner: State, stage: jax.Array, success: jax.Array) -> jax.Array:
-        """float32[N]: SPEC §1's subtask rewards."""
+        """float32[N]: the subtask rewards of docs/design.md#environments-and-their-contract."""
         n = jnp.arange(self.num_stages)
         progress = jnp.clip(self.spec.per_stage("progress", inner).astype(jnp.float32), 0.0, 1.0)
         rewards = jnp.where(n < stage, 1.0, jnp.where(n == stage, progress, 0.0))

@@ -170,7 +170,7 @@ def _rollout(env, actions, key=jax.random.PRNGKey(0)):
 
 
 def _expected(x: np.ndarray, stage_before: int = 0):
-    """SPEC §1 rewards of the Slider task along positions x [T] (stage 0: [0, 1), stage 1: [1, 2])."""
+    """The contract's subtask rewards of the Slider task along positions x [T] (stage 0: [0, 1), stage 1: [1, 2])."""
     stages, rewards, success = [], [], []
     stage = stage_before
     for xi in x:

@@ -12,7 +12,7 @@ import pytest
 
 from envs_mjx.maze import Maze, dead_end_is_low, maze_mjcf
 
-R = 0.15  # robot radius (SPEC §4)
+R = 0.15  # robot radius (docs/design.md#environments-and-their-contract)
 TOL = 1e-4  # allowed float error on clearances, m
 
 

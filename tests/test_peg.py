@@ -10,7 +10,7 @@ import os
 
 from envs_mjx import cpu_xla_flags
 
-# MJX on CPU: XLA's fusion emitters make this env ~50x slower (see PEG_NOTES). Append the
+# MJX on CPU: XLA's fusion emitters make this env ~50x slower (docs/peg.md#why-mjx-is-slow-on-a-cpu). Append the
 # switch before JAX starts, keeping anything the user set.
 os.environ["XLA_FLAGS"] = cpu_xla_flags()
 

@@ -1,7 +1,7 @@
 """A tiny multi-stage env for trainer tests: a point on a line crossing N unit segments.
 
 x starts in [0, 0.2]; the action moves it by 0.25·a; stage n spans x in [n, n+1];
-R_n follows SPEC §1 (progress x − n inside the stage); success at x >= N − 0.05.
+R_n follows docs/design.md#environments-and-their-contract (progress x − n inside the stage); success at x >= N − 0.05.
 """
 from __future__ import annotations
 

@@ -1,14 +1,14 @@
 #!/usr/bin/env bash
 # The prepared GPU measurement, sized for one ≈ 9-minute call of a lent GPU: what no GPU has
-# measured yet (session 34 timed the paper-scale maze grids, experiments/bench/README.md), most
+# measured yet (the paper-scale maze grids have been timed on an H200: docs/benchmarks.md#on-a-gpu), most
 # informative first, each program's JSON line written as soon as it is measured.
 #
 #   OUT=/tmp/gpu bash experiments/bench/gpu_job.sh            # paper scale, stops itself after $BUDGET_S (540) s
 #   OUT=/tmp/gpu bash experiments/bench/gpu_job.sh smoke      # seconds, any machine: checks the script
 #
 # Where the machine lacks our packages, wheels in .whl/ are installed to /tmp/site first. Carry only
-# what it lacks: a GPU image's own jax needs its own flax (flax 0.12.6 fails on jax 0.11). Session 34's
-# H200 lacked brax, mujoco, mujoco-core, mujoco-mjx, jaxopt, trimesh, glfw, tyro, docstring_parser and
+# what it lacks: a GPU image's own jax needs its own flax (flax 0.12.6 fails on jax 0.11). The one
+# H200 lent so far lacked brax, mujoco, mujoco-core, mujoco-mjx, jaxopt, trimesh, glfw, tyro, docstring_parser and
 # typeguard (mujoco-studio, which only renders, can stay behind).
 set -u -o pipefail
 OUT=${OUT:-/tmp/gpu_job}
@@ -34,7 +34,7 @@ fi
 
 left() { echo $((BUDGET_S - ($(date +%s) - start))); }
 P=experiments/bench/paper_projection.py
-# Session 34 timed the maze grids; what no GPU has timed yet comes first: one peg run alone (MJX: compile
+# The maze grids have been timed on a GPU; what no GPU has timed yet comes first: one peg run alone (MJX: compile
 # or epochs?), brax's SAC against ours on the same maze work, then the peg grid.
 timeout $(( $(left) / 3 )) python3 $P --scale "$SCALE" --domains peg --no-grid --out "$OUT/projection.jsonl" \
   2>&1 | tee "$OUT/log.txt"
