@@ -2,7 +2,7 @@
 
     python experiments/bench/cpu_devices.py                              # grids of 1, 2, 3, 4, 12 on the 2-room maze
     python experiments/bench/cpu_devices.py --rooms 3 --grids 1 3 \\
-        --steps-per-epoch 5000 --loops 1000 --eval-episodes 10 --episode-length 1000 --buffer 200000   # SPEC §7's epoch
+        --steps-per-epoch 5000 --loops 1000 --eval-episodes 10 --episode-length 1000 --buffer 200000   # the yardstick's epoch
 
 The device count is fixed when JAX starts, so each count runs in its own
 process (this script, `--worker`), which builds and compiles the real grid

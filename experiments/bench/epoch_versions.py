@@ -1,17 +1,17 @@
 """The epoch as the trainer runs it against its earlier versions, in one process.
 
-    python experiments/bench/epoch_versions.py                      # 3-room CSAC, one run (SPEC §7's speed yardstick)
+    python experiments/bench/epoch_versions.py                      # 3-room CSAC, one run (the speed yardstick, docs/design.md#the-learning-yardstick)
     python experiments/bench/epoch_versions.py --rooms 2 --seeds 3  # 2-room grid of 3, members one at a time
 
 The versions, newest first; each puts one more piece back as it was:
 - today's: each update gathers the next update's batch (`learner.train_loops`), so the gather
   runs beside the update instead of before it;
-- "gather before each update" (session 34's epoch): each update gathers its own batch first;
-- "draws in the loop" (session 32's loop): each update draws its batch indices and action noise
-  from its own key, where since session 33 the whole loop's are drawn at once before it;
-- "session 32": also the critic reading [obs, act] concatenated, where since session 33 its first
-  layer takes them apart (`networks.ConcatDense`, the same parameters).
-All are the same grid trainer (SPEC §7's settings: "small" preset, [64, 64], the paper's epoch of
+- "gather before each update": each update gathers its own batch first;
+- "draws in the loop": each update draws its batch indices and action noise from its own key,
+  where the trainer draws the whole loop's at once before it;
+- "concatenated critic input": also the critic reading [obs, act] concatenated, where the trainer's
+  first critic layer takes them apart (`networks.ConcatDense`, the same parameters).
+All are the same grid trainer (the yardstick's settings, docs/design.md#the-learning-yardstick: "small" preset, [64, 64], the paper's epoch of
 5000 env steps and 1000 joint updates, buffer 2e5, 10 evaluation episodes), the older ones built by
 patching those pieces back in; their epochs alternate (order reversed every round) and the table
 gives each one's median and the median of the paired ratios against today's.
@@ -38,7 +38,7 @@ from envs_mjx import configure_cpu  # noqa: E402
 
 
 def gather_before_each_update(learner, agents, buffer, eta, ready, key, loops, batch_size):
-    """Session 34's loop: draws made before it, each update gathering its own batch first."""
+    """The loop with draws made before it, each update gathering its own batch first."""
     loop_keys = jax.vmap(jax.random.split)(jax.random.split(key, loops))
     idx = jax.vmap(lambda k: replay.sample_indices(buffer.size, k, batch_size))(loop_keys[:, 0])
     noise = jax.vmap(lambda k: learner.draw_noise(k, batch_size))(loop_keys[:, 1])
@@ -50,7 +50,7 @@ def gather_before_each_update(learner, agents, buffer, eta, ready, key, loops, b
 
 
 def draws_in_the_loop(learner, agents, buffer, eta, ready, key, loops, batch_size):
-    """Session 32's loop: each update draws its batch indices and noise from its own key."""
+    """The loop where each update draws its batch indices and noise from its own key."""
     def loop(agents, k):
         k_sample, k_update = jax.random.split(k)
         return learner.update(agents, replay.sample(buffer, k_sample, batch_size), eta, ready, k_update)
@@ -58,7 +58,7 @@ def draws_in_the_loop(learner, agents, buffer, eta, ready, key, loops, batch_siz
 
 
 class ConcatenatedInput(TwinCritic):
-    """Session 32's critic: one input, [obs, act] concatenated (the same parameters)."""
+    """The critic with one input, [obs, act] concatenated (the same parameters)."""
 
     @nn.compact
     def __call__(self, obs: jax.Array, act: jax.Array) -> jax.Array:
@@ -71,11 +71,11 @@ def main(args: Alternating) -> None:
     config = args.config()
     runs = {"today's": TimedGrid(config)}
     with mock.patch.object(trainer_module, "train_loops", gather_before_each_update):
-        runs["gather before each update (session 34)"] = TimedGrid(config)
+        runs["gather before each update"] = TimedGrid(config)
     with mock.patch.object(trainer_module, "train_loops", draws_in_the_loop):
         runs["draws in the loop"] = TimedGrid(config)
         with mock.patch("ccp_jax.learner.TwinCritic", ConcatenatedInput):
-            runs["session 32"] = TimedGrid(config)
+            runs["concatenated critic input"] = TimedGrid(config)
     for r in range(args.reps):
         for timed in (list(runs.values()) if r % 2 == 0 else list(runs.values())[::-1]):
             timed.epoch()

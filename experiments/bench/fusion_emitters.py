@@ -1,11 +1,11 @@
 """The trainer's maze epoch compiled with XLA's CPU fusion emitters on (what it does) against off (the process flag).
 
-    python experiments/bench/fusion_emitters.py                      # 3-room CSAC, one run (SPEC §7's speed yardstick)
+    python experiments/bench/fusion_emitters.py                      # 3-room CSAC, one run (the speed yardstick, docs/design.md#the-learning-yardstick)
     python experiments/bench/fusion_emitters.py --rooms 2 --seeds 3  # 2-room grid of 3, members one at a time
 
 `envs_mjx.configure_cpu()` (called first, as by the CLI) turns the emitters off process-wide (MJX needs it), and the
 trainer compiles its epoch with them back on for an env that does not run MJX
-(`envs_mjx.cpu_compiler_options`). Both versions of the same grid trainer (SPEC §7's settings: "small" preset,
+(`envs_mjx.cpu_compiler_options`). Both versions of the same grid trainer (the yardstick's settings, docs/design.md#the-learning-yardstick: "small" preset,
 [64, 64], the paper's epoch of 5000 env steps and 1000 joint updates, buffer 2e5, 10 evaluation episodes) are
 compiled in this one process; their epochs alternate (order swapped every round) and the table gives each one's
 median and the median of the paired ratios on/off.

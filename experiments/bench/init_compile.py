@@ -32,7 +32,7 @@ from envs_mjx import configure_cpu
 @dataclasses.dataclass
 class Args:
     envs: Sequence[str] = ("maze", "peg")
-    """"maze" (2 rooms) and/or "peg", at SPEC §7's "small" settings."""
+    """"maze" (2 rooms) and/or "peg", at the yardstick's "small" settings (docs/design.md#the-learning-yardstick)."""
     seeds: int = 1
     """Grid size."""
 

@@ -69,7 +69,7 @@ class Alternating:
     """Timed epochs of each version."""
 
     def config(self) -> Config:
-        """SPEC §7's settings: "small" preset, [64, 64], the paper's epoch, buffer 2e5 per agent."""
+        """The yardstick's settings (docs/design.md#the-learning-yardstick): "small" preset, [64, 64], the paper's epoch, buffer 2e5 per agent."""
         return make_config("small", rooms=self.rooms, seeds=tuple(range(self.seeds)), buffer_size=200_000)
 
 

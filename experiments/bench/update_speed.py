@@ -6,8 +6,8 @@ Prints: FLOPs of one joint update of all agents (XLA's own count), updates per
 second (median of --reps timed scans of --loops updates, compile excluded),
 the throughput of a bare jitted matmul chain with the layer's shapes, and the
 fraction of that roof the update reaches; also the fraction of the 256-wide
-chain's roof, the yardstick SPEC §7 states the prototype's speed in (76 % at
-[256, 256], 53 % at [64, 64]), so the two compare on machines of any speed.
+chain's roof, the unit the prototype's speed is stated in (76 % at [256, 256], 53 % at [64, 64];
+docs/design.md#the-learning-yardstick), so the two compare on machines of any speed.
 """
 from __future__ import annotations
 

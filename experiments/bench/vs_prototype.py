@@ -1,8 +1,8 @@
-"""SPEC §7's speed yardstick in one command: our epoch against the prototype's published epoch times.
+"""The speed yardstick (docs/design.md#the-learning-yardstick) in one command: our epoch against the prototype's published epoch times.
 
     python experiments/bench/vs_prototype.py            # ≈ 5 min on a 2-core CPU with nothing else running
 
-SPEC §7's settings: CSAC, [64, 64] networks, batch 256, buffer 2e5 per agent,
+The yardstick's settings: CSAC, [64, 64] networks, batch 256, buffer 2e5 per agent,
 the paper's epoch (5000 env steps from 1 env, 1000 joint updates, 10
 deterministic evaluation episodes of ≤ 1000 steps; an untrained policy uses
 all of them). The prototype's figures: 2.5 s per epoch for one 3-room run,
@@ -19,8 +19,8 @@ a shared machine falls on all of them; figures are medians over all epochs.
 Machines differ in speed, and this one's varies by 1.5× between days, so the
 script also measures the 256-wide `jnp.dot` roof (a jitted chain of [256, 256]
 products, in every process before and after its epochs) and scales our times
-to SPEC §0's roof of 148 GFLOP/s, measured on the machine SPEC §7's figures
-come from: a time scaled that way is what this epoch would take on a machine
+to the roof of 148 GFLOP/s measured on the machine the prototype's figures
+come from (docs/design.md#the-learning-yardstick): a time scaled that way is what this epoch would take on a machine
 as fast as that one.
 """
 from __future__ import annotations
@@ -41,14 +41,14 @@ from ccp_jax.devices import CpuDevices, split_host_cpu  # noqa: E402
 from grid_scaling import EpochShape, config_for  # noqa: E402
 from envs_mjx import configure_cpu  # noqa: E402
 
-SPEC_ROOF_GFLOPS = 148.0  # SPEC §0: the 256-wide jnp.dot roof of the machine SPEC §7 was measured on
+PROTOTYPE_ROOF_GFLOPS = 148.0  # the 256-wide jnp.dot roof of the machine the prototype's times come from
 
 
 class Setup(NamedTuple):
     """One timed configuration: the prototype's figure it is compared with, and how we run it."""
 
-    figure: str  # SPEC §7's configuration
-    prototype_s: float  # SPEC §7's seconds per epoch for it
+    figure: str  # the prototype's configuration
+    prototype_s: float  # the prototype's seconds per epoch for it
     layout: str
     rooms: int
     grid: int
@@ -73,20 +73,20 @@ class Args:
     loops: int = 1000
     eval_episodes: int = 10
     episode_length: int = 1000
-    """The epoch; the defaults are SPEC §7's (smaller values only to try the script quickly)."""
+    """The epoch; the defaults are the yardstick's (smaller values only to try the script quickly)."""
     worker: str = ""
     """Internal: time this configuration in this process and print JSON."""
 
 
 def scaled(epoch_s: float, roof_gflops: float) -> float:
-    """`epoch_s` measured under a roof of `roof_gflops`, as it would be under SPEC §0's roof."""
-    return epoch_s * roof_gflops / SPEC_ROOF_GFLOPS
+    """`epoch_s` measured under a roof of `roof_gflops`, as it would be under the prototype machine's roof."""
+    return epoch_s * roof_gflops / PROTOTYPE_ROOF_GFLOPS
 
 
 def report(rows: list[dict]) -> str:
     """A markdown table: rows {name, devices, epochs: [s, ...], roofs: [GFLOP/s measured around them]}."""
     lines = ["| configuration | layout | devices | ours, s per epoch (median, min–max) | 256-wide roof, GFLOP/s "
-             "| prototype | ours / prototype | ours at SPEC §0's roof (148) | ours / prototype there |",
+             "| prototype | ours / prototype | ours at the prototype machine's roof (148) | ours / prototype there |",
              "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         setup = CONFIGS[r["name"]]

@@ -1,6 +1,6 @@
 """Our grid trainer against the plain reference CSAC (experiments/crosscheck) on the same work.
 
-Both train SPEC §7's 2-room yardstick epoch (5000 env steps, 1000 joint
+Both train the 2-room yardstick's epoch (docs/design.md#the-learning-yardstick) (5000 env steps, 1000 joint
 updates, 10 evaluation episodes; [64, 64] nets, batch 256, buffer 2e5) for G
 seeds in one compiled program: ours with members one at a time and all
 vmapped, the reference with its seeds vmapped. Epochs are timed round-robin

@@ -17,7 +17,7 @@ then `num_epochs` updates) and then evaluates; with `eval_freq` = the epoch's
 env steps and `skip_initial_evaluation`, one call of its jitted `train` on the
 carried state is one epoch. Its evaluation is rejax's `evaluate` on
 `eval_episodes` episodes of ≤ `episode_length` steps (sampled actions, its only
-mode); ours evaluates as in training (deterministic, SPEC §3). Each side is
+mode); ours evaluates as in training (deterministic, docs/design.md#hyperparameters). Each side is
 timed twice: with its evaluation, and with evaluation stubbed out (the same
 work on both sides).
 

@@ -1,6 +1,6 @@
 """An independent, deliberately plain CSAC, to cross-check ccp_jax's trainer.
 
-Written from SPEC §1 and the paper's Algorithms 1–2 without importing
+Written from docs/design.md#the-method and the paper's Algorithms 1–2 without importing
 ccp_jax: a Python loop over agents, one flax MLP per network, lists of
 per-agent dicts, one replay buffer per agent, one environment per run. It
 shares only the environment (envs_mjx). Two uses:
@@ -9,7 +9,7 @@ shares only the environment (envs_mjx). Two uses:
   agents, critic "slots") equals `Reference.update` step for step under the
   same noise, for 2 and 3 agents, with and without absorbing stages;
 * `python experiments/crosscheck/reference_csac.py --seeds 0 1 2 3 4 5`
-  trains it on SPEC §7's 2-room yardstick (seeds vmapped), so its learning
+  trains it on the 2-room yardstick (seeds vmapped), so its learning
   curve can be compared with ours (results: experiments/crosscheck/README.md).
 """
 from __future__ import annotations
@@ -32,7 +32,7 @@ from envs_mjx import configure_cpu
 
 @dataclasses.dataclass(frozen=True)
 class Settings:
-    """SPEC §3's hyperparameters with SPEC §7's yardstick sizes."""
+    """The paper's hyperparameters (docs/design.md#hyperparameters) at the yardstick's sizes."""
 
     etas: tuple[float, ...] = (0.1, 1.0)  # one per agent; the last agent's is unused
     hidden: tuple[int, ...] = (64, 64)
