@@ -7,7 +7,7 @@
 Same hyperparameters on both sides: MLPs [w, w] ReLU for the actor and each of
 the twin critics, batch 256, Adam 3e-4 for actor, critics and temperature,
 γ 0.95, τ 0.005, automatic entropy tuning with target −|A|. SB3 drives our maze
-through `gym_maze.GymMaze`.
+through `envs_mjx.gym.GymEnv`.
 
 What is timed (compile excluded):
 * SB3 updates: `model.train(gradient_steps=K, batch_size)` on a replay buffer
@@ -49,7 +49,7 @@ from ccp_jax.trainer import make_train
 from envs_mjx.maze import Maze
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from gym_maze import GymMaze  # noqa: E402
+from envs_mjx.gym import GymEnv  # noqa: E402
 from update_speed import full_of_noise, matmul_roof  # noqa: E402
 from timed import no_eval  # noqa: E402
 from envs_mjx import configure_cpu  # noqa: E402
@@ -92,7 +92,7 @@ def make_sb3(args: Args, width: int, train_freq: int = 1):
     from stable_baselines3 import SAC
 
     torch.manual_seed(0)
-    model = SAC("MlpPolicy", GymMaze(rooms=args.rooms), learning_rate=3e-4, buffer_size=args.buffer,
+    model = SAC("MlpPolicy", GymEnv(Maze(rooms=args.rooms)), learning_rate=3e-4, buffer_size=args.buffer,
                 learning_starts=args.fill, batch_size=args.batch, tau=0.005, gamma=0.95, train_freq=train_freq,
                 gradient_steps=1, ent_coef="auto", target_entropy="auto",
                 policy_kwargs=dict(net_arch=[width] * args.layers), device="cpu", seed=0, verbose=0)
