@@ -41,7 +41,7 @@ Ratio = float | str  # a number in [0, 1] or AUTO
 # ------------------------------------------------------------------ as given
 
 def parse_eta(text: str, field: str = "eta") -> Ratio:
-    """A ratio as typed: '0.3' -> 0.3, 'auto' -> AUTO; ConfigError naming `field` otherwise (the range is checked by Config)."""
+    """A ratio as typed: '0.3' -> 0.3, 'auto' -> AUTO; ConfigError naming `field` otherwise (`check_ratios` checks the range)."""
     if text.strip() == AUTO:
         return AUTO
     try:

@@ -137,7 +137,7 @@ class Args:
     cpu_devices: CpuDevices = "auto"
     """On a CPU: split it into this many XLA devices, so grid members train side by side (auto: the count that wastes least for this grid, of up to twice the cores, ccp_jax.devices.grid_devices: one run keeps the whole CPU as one device, 3 runs on 2 cores take 3; 1: the whole CPU as one device). A count set in $XLA_FLAGS wins. Does not change results beyond float rounding."""
     members_at_once: Optional[int] = None
-    """Grid members each device advances together (vmapped); the rest run one group after another in the same program. Default: all on GPU/TPU; on a CPU device of several cores as many as keep the stacked critic activations small (ccp_jax.trainer.default_members_at_once: 12 [64, 64] SAC members, 4 2-agent or 2 3-agent CSAC members), on a CPU split into a device per core 1. Does not change results beyond float rounding."""
+    """Grid members each device advances together (vmapped); the rest run one group after another in the same program. Default: all on GPU/TPU; on a CPU device of several cores as many as keep the stacked critic activations small (ccp_jax.devices.default_members_at_once: 12 [64, 64] SAC members, 4 2-agent or 2 3-agent CSAC members), on a CPU split into a device per core 1. Does not change results beyond float rounding."""
     progress: bool = True
     """Show a progress bar."""
     compile_cache: bool = True
@@ -266,7 +266,7 @@ def run(config: Config, out: Path, progress: bool = True, resume: bool = False,
 
     With `resume`, continues from the latest checkpoint in `out`; metrics rows
     written after that checkpoint are replaced by their recomputation (identical on the same device split).
-    `members_at_once`: see `GridTrainer` (default: `trainer.default_members_at_once`).
+    `members_at_once`: see `GridTrainer` (default: `devices.default_members_at_once`).
     `devices`: what the grid trains on (default: `grid_devices`); a resumed run may use another split
     than its checkpoint's (`checkpoint.restore` pads the grid anew).
     Returns the summary (per member: final success = mean of the last 10 epochs).

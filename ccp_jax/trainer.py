@@ -20,7 +20,7 @@ from flax import struct
 from ccp_jax import buffer as replay
 from ccp_jax import eta as ratios
 from ccp_jax.buffer import ReplayBuffer
-from ccp_jax.collect import EvalMetrics, TracedOnce, make_collect, make_evaluate, per_episode
+from ccp_jax.collect import EpisodeStats, EvalMetrics, TracedOnce, make_collect, make_evaluate, per_episode
 from ccp_jax.config import Config
 from ccp_jax.learner import (AgentState, Learner, Networks, UpdateMetrics, init_agents, make_learner, make_networks,
                              train_loops)
@@ -54,6 +54,8 @@ class EpochMetrics(NamedTuple):
 
 
 class Trainer(NamedTuple):
+    """One run's networks and its pure, jittable `init` and `train_step` (`make_train`)."""
+
     networks: Networks
     init: Callable[[jax.Array], TrainState]  # seed int32[] -> TrainState
     train_step: Callable[[TrainState, jax.Array], tuple[TrainState, EpochMetrics]]  # (state, eta[N])
@@ -113,7 +115,8 @@ def init_state(config: Config, env: Env, nets: Networks, obs_size: int, action_s
 
 
 def run_cycles(config: Config, collect: Callable, learner: Learner, state: TrainState, eta: jax.Array,
-               k_collect: jax.Array, k_train: jax.Array):
+               k_collect: jax.Array, k_train: jax.Array
+               ) -> tuple[AgentState, State, ReplayBuffer, jax.Array, EpisodeStats, UpdateMetrics]:
     """The epoch's `train_cycles_per_epoch` rounds of collection, then updates.
 
     Returns (agents, env_state, buffer, env_steps, the epoch's collection stats summed over rounds,
