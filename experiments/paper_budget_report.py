@@ -144,7 +144,7 @@ def markdown(rows: list[dict], improvement: list[str]) -> str:
         f"{' '.join('never' if s is None else f'{s / 1e6:.2f} M' for s in r['solved_at'])} | {fmt(r['paper'])} |\n"
         for r in rows)
     decay = "".join(f"| {r['domain']} | {r['method']} | {' '.join(f'{p:.2f}' for p in r['peak'])} | "
-                    f"{' '.join(f'{d:.2f}' for d in r['drop'])} |\n" for r in rows)
+                    f"{' '.join(f'{round(d, 2) + 0.0:.2f}' for d in r['drop'])} |\n" for r in rows)
     ends = "".join(f"| {r['domain']} | {r['method']} | {r['ends']} |\n" for r in rows)
     return (f"# Table I's maze rows at the paper's budget\n\nSeeds {SEEDS[0]}–{SEEDS[-1]} (never used to choose a "
             "setting); [64, 64] networks (the paper's are [256, 256]), buffer 1e6, the paper's epoch (5000 env steps, "
