@@ -483,13 +483,13 @@ def test_vs_prototype_reports_times_against_the_prototype_and_scaled_to_spec_roo
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments" / "bench"))
     import vs_prototype as vp
 
-    assert vp.scaled(3.0, 74.0) == pytest.approx(1.5)  # half SPEC §0's roof: twice as fast there
+    assert vp.scaled(3.0, 74.0) == pytest.approx(1.5)  # half the prototype machine's roof: twice as fast there
     text = vp.report([dict(name="3 rooms, one run", devices=1, epochs=[2.0, 3.0, 9.0], roofs=[74.0, 74.0]),
                       dict(name="2 rooms, grid of 3, one device", devices=1, epochs=[6.0], roofs=[148.0, 148.0])])
-    # median 3.0 s against 2.5 s: 1.20; at SPEC §0's roof 1.50 s, 0.60 of the prototype's
+    # median 3.0 s against 2.5 s: 1.20; at the prototype machine's roof 1.50 s, 0.60 of the prototype's
     assert "| 3 rooms, one run | one run | 1 | 3.00 (2.00–9.00) | 74 | 2.5 | 1.20 | 1.50 | 0.60 |" in text
     assert "| 2 rooms, grid of 3 | one device, vmapped | 1 | 6.00 (6.00–6.00) | 148 | 4.0 | 1.50 | 6.00 | 1.50 |" in text
-    assert {c.figure for c in vp.CONFIGS.values()} == {"3 rooms, one run", "2 rooms, grid of 3"}  # both of SPEC §7's
+    assert {c.figure for c in vp.CONFIGS.values()} == {"3 rooms, one run", "2 rooms, grid of 3"}  # both of the prototype's
 
 
 def test_vs_rejax_reports_the_median_of_paired_ratios_per_grid():

@@ -352,8 +352,8 @@ def test_critic_first_layer_is_a_dense_layer_on_obs_and_action_together():
 
 
 def test_train_loops_are_updates_on_the_batches_drawn_for_them(csac):
-    """`train_loops` gathers loop i + 1's batch during loop i: the result must be session 34's loop,
-    each update on its own batch gathered first (same draws), up to XLA's float rounding (≈ 1e-10 here)."""
+    """`train_loops` gathers loop i + 1's batch during loop i: the result must be that of the loop
+    where each update gathers its own batch first (same draws), up to XLA's float rounding (≈ 1e-10 here)."""
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments" / "bench"))
     from epoch_versions import gather_before_each_update
     from update_speed import full_of_noise

@@ -1,4 +1,4 @@
-"""The loss terms against hand-derived values (SPEC §1)."""
+"""The loss terms against hand-derived values (docs/design.md#the-method)."""
 import jax
 import jax.numpy as jnp
 import numpy as np

@@ -148,7 +148,7 @@ def test_vmapped_members_equal_members_one_at_a_time(grid_run):
 
 def test_cpu_default_vmaps_members_while_their_critic_activations_stay_small():
     cpu, gpu = [types.SimpleNamespace(platform=p) for p in ("cpu", "gpu")]
-    small = lambda **kw: make_config("small", **kw)  # [64, 64], batch 256: SPEC §7's settings
+    small = lambda **kw: make_config("small", **kw)  # [64, 64], batch 256: the yardstick's settings
     default = lambda config, cores=2.0, devices=(cpu,): default_members_at_once(list(devices), 32, config, cores)
     # CPU_VMAP_FLOATS holds 12 critic slots of [64, 64] at batch 256; CSAC has 2N − 1 slots per member
     assert critic_slots(small(algo="sac")) == 1 and critic_slots(small(algo="naive", rooms=3)) == 3
