@@ -8,8 +8,9 @@ checkpoint as the latest usable one.
 """
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import jax
 import numpy as np
@@ -36,19 +37,58 @@ def manager(run_dir: Path, max_to_keep: int = 2) -> ocp.CheckpointManager:
                                                                       enable_async_checkpointing=False))
 
 
-def _nonempty(tree: Any) -> dict[str, Any]:
-    """The tree's leaves by flat index, without zero-size arrays (orbax cannot write those;
-    MJX states have some, e.g. `act` of a model without actuator activations)."""
+def _name(key: Any) -> str:
+    """One step of a pytree path as a checkpoint key: a field or dict key by name, a sequence index as #i."""
+    if isinstance(key, jax.tree_util.GetAttrKey):
+        return key.name
+    if isinstance(key, jax.tree_util.DictKey):
+        return str(key.key)
+    return f"#{getattr(key, 'idx', getattr(key, 'key', key))}"
+
+
+def leaf_names(tree: Any) -> list[tuple[str, ...]]:
+    """Every leaf's path in `tree` as names (`_name`), in the order of `jax.tree.leaves`."""
+    return [tuple(_name(k) for k in path) for path, _ in jax.tree_util.tree_flatten_with_path(tree)[0]]
+
+
+def _keyed(tree: Any) -> dict[str, Any]:
+    """The tree's leaves as a nested dict keyed by their paths' names, so a checkpoint stays readable when a field
+    is added to the state; zero-size arrays are left out (orbax cannot write those; MJX states have some)."""
+    nested: dict[str, Any] = {}
+    for names, x in zip(leaf_names(tree), jax.tree.leaves(tree)):
+        if x.size > 0:
+            node = nested
+            for name in names[:-1]:
+                node = node.setdefault(name, {})
+            node[names[-1]] = x
+    return nested
+
+
+def _flat(nested: dict[str, Any], prefix: tuple[str, ...] = ()) -> dict[tuple[str, ...], Any]:
+    """{path: leaf} of a nested dict (a checkpoint's tree or its metadata)."""
+    out = {}
+    for name, value in nested.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, prefix + (name,)))
+        else:
+            out[prefix + (name,)] = value
+    return out
+
+
+def _nest(flat: dict[tuple[str, ...], Any]) -> dict[str, Any]:
+    """Inverse of `_flat`."""
+    nested: dict[str, Any] = {}
+    for names, x in flat.items():
+        node = nested
+        for name in names[:-1]:
+            node = node.setdefault(name, {})
+        node[names[-1]] = x
+    return nested
+
+
+def _by_position(tree: Any) -> dict[str, Any]:
+    """The layout of checkpoints written before leaves were keyed by path: the nonempty leaves by flat index."""
     return {str(i): x for i, x in enumerate(jax.tree.leaves(tree)) if x.size > 0}
-
-
-def _rebuild(abstract: Any, saved: dict[str, Any]) -> Any:
-    """Inverse of `_nonempty`: zero-size leaves come back as empty arrays of their shape and sharding."""
-    leaves, treedef = jax.tree.flatten(abstract)
-    return jax.tree.unflatten(treedef, [
-        saved[str(i)] if str(i) in saved
-        else jax.device_put(np.zeros(x.shape, x.dtype), getattr(x, "sharding", None))
-        for i, x in enumerate(leaves)])
 
 
 def save(mngr: ocp.CheckpointManager, epoch: int, state: Any) -> None:
@@ -57,17 +97,15 @@ def save(mngr: ocp.CheckpointManager, epoch: int, state: Any) -> None:
     The actors' parameters are also saved as a small item of their own, so a
     policy can be loaded without reading the replay buffers.
     """
-    mngr.save(epoch, args=ocp.args.Composite(state=ocp.args.StandardSave(_nonempty(state)),
-                                             policy=ocp.args.StandardSave(_nonempty(state.agents.actor))))
+    mngr.save(epoch, args=ocp.args.Composite(state=ocp.args.StandardSave(_keyed(state)),
+                                             policy=ocp.args.StandardSave(_keyed(state.agents.actor))))
     mngr.wait_until_finished()
 
 
-def _repadded(saved: dict[str, np.ndarray], target: dict[str, Any], grid_size: int) -> dict[str, Any]:
-    """Host arrays of a grid padded for other devices, cut to its `grid_size` real members and padded again
-    (`pad_grid`, as `GridTrainer` pads) to the leading size of `target`'s leaves, then placed with their
-    shardings."""
-    return {k: jax.device_put(pad_grid(saved[k][:grid_size], want.shape[0]), getattr(want, "sharding", None))
-            for k, want in target.items()}
+def _repadded(saved: np.ndarray, want: Any, grid_size: int) -> Any:
+    """A host array of a grid padded for other devices, cut to its `grid_size` real members and padded again
+    (`pad_grid`, as `GridTrainer` pads) to the leading size of `want`, then placed with its sharding."""
+    return jax.device_put(pad_grid(saved[:grid_size], want.shape[0]), getattr(want, "sharding", None))
 
 
 def _unreadable(folder: Path, epoch: int, steps, err: Exception) -> CheckpointError:
@@ -77,17 +115,50 @@ def _unreadable(folder: Path, epoch: int, steps, err: Exception) -> CheckpointEr
     return CheckpointError(f"{folder / str(epoch)} cannot be restored ({type(err).__name__}: {str(err)[:300]}){hint}")
 
 
-def restore(mngr: ocp.CheckpointManager, abstract_state: Any, item: str = "state",
-            epoch: int | None = None, grid_size: int | None = None) -> tuple[int, Any]:
+def _match(meta: dict, abstract_state: Any, item: str, where: Path, defaults: Any) -> list:
+    """Per leaf of `abstract_state` (in leaf order): the checkpoint path it restores from, "empty" (a zero-size
+    leaf) or "default" (a leaf the checkpoint lacks, taken from `defaults`). Checkpoints written before leaves
+    were keyed by path are matched by position, and only if they hold as many arrays as the state."""
+    leaves = jax.tree.leaves(abstract_state)
+    if all(k.isdigit() for k in meta):  # keyed by position
+        if len(meta) != sum(x.size > 0 for x in leaves):
+            raise CheckpointError(f"{where} holds {len(meta)} arrays where this version's {item} has "
+                                  f"{sum(x.size > 0 for x in leaves)}: it was saved by another version of ccp-jax (or "
+                                  "of the env); start the run afresh")
+        return ["empty" if x.size == 0 else (str(i),) for i, x in enumerate(leaves)]
+    saved = _flat(meta)
+    keys = [names if x.size > 0 else "empty" for names, x in zip(leaf_names(abstract_state), leaves)]
+    missing = ["/".join(k) for k in keys if k != "empty" and k not in saved]
+    if missing and defaults is None:
+        raise CheckpointError(f"{where} lacks {len(missing)} of this version's {item} arrays ({', '.join(missing[:4])}"
+                              f"{' ...' if len(missing) > 4 else ''}): it was saved by another version of ccp-jax; "
+                              "start the run afresh")
+    for k, x in zip(keys, leaves):
+        if k in saved and (saved[k].shape[1:] != x.shape[1:] or np.dtype(saved[k].dtype) != np.dtype(x.dtype)):
+            raise CheckpointError(f"{where}: array {'/'.join(k)} is {saved[k].shape} {saved[k].dtype} where this "
+                                  f"version expects {x.shape} {x.dtype}; start the run afresh")
+    if missing:
+        warnings.warn(f"{where}: {len(missing)} arrays this version's {item} adds are not in the checkpoint and "
+                      f"start from their initial values: {', '.join(missing)}", stacklevel=3)
+    return [k if k == "empty" or k in saved else "default" for k in keys]
+
+
+def restore(mngr: ocp.CheckpointManager, abstract_state: Any, item: str = "state", epoch: int | None = None,
+            grid_size: int | None = None, defaults: Any | Callable[[], Any] = None) -> tuple[int, Any]:
     """A complete checkpoint (default: the latest), restored into the structure and shardings
     of `abstract_state`. `item` is "state" (everything) or "policy" (the actors' parameters).
 
-    Every leaf has the grid axis first. A checkpoint saved from another device split holds the grid padded
-    to another size: given the real `grid_size`, its members are kept and the padding redone for
-    `abstract_state` (in host memory), so a run resumes, or a policy loads, on any number of devices.
+    Leaves are found by their path in the state, so a checkpoint written before a field was added still
+    restores: given `defaults` (a state of the same structure, e.g. the trainer's init, or a function returning
+    one, called only when a leaf is missing), the added leaves take its values and a warning names them;
+    without, the checkpoint is refused naming them. A leaf whose shape
+    or dtype changed is refused by name. Every leaf has the grid axis first. A checkpoint saved from another
+    device split holds the grid padded to another size: given the real `grid_size`, its members are kept and
+    the padding redone for `abstract_state` (in host memory), so a run resumes, or a policy loads, on any
+    number of devices.
 
-    Raises `CheckpointError` naming the folder when there is none, when it is
-    unreadable, or when its arrays do not match the config's shapes.
+    Raises `CheckpointError` naming the folder when there is none, when it is unreadable, or when its
+    arrays do not match the config's.
     """
     steps = mngr.all_steps()
     folder = Path(mngr.directory)
@@ -101,24 +172,33 @@ def restore(mngr: ocp.CheckpointManager, abstract_state: Any, item: str = "state
         meta = ocp.StandardCheckpointHandler().metadata(folder / str(epoch) / item)
     except Exception as err:  # orbax raises many types for damaged files
         raise _unreadable(folder, epoch, steps, err) from err
-    target = _nonempty(abstract_state)
-    if set(meta) != set(target):
-        raise CheckpointError(f"{folder / str(epoch)} holds {len(meta)} arrays where this version's {item} has "
-                              f"{len(target)}: it was saved by another version of ccp-jax (or of the env); "
-                              "start the run afresh")
-    slots = {m.shape[0] for m in meta.values()}
-    repad = grid_size is not None and slots != {x.shape[0] for x in target.values()} and min(slots) >= grid_size
+    leaves, treedef = jax.tree.flatten(abstract_state)
+    sources = _match(meta, abstract_state, item, folder / str(epoch), defaults)
+    flat_meta = _flat(meta)
+    wanted = {k: x for k, x in zip(sources, leaves) if k not in ("empty", "default")}
+    slots = {m.shape[0] for m in flat_meta.values()}
+    repad = grid_size is not None and slots != {x.shape[0] for x in wanted.values()} and min(slots) >= grid_size
     if repad and jax.process_count() > 1:
         raise CheckpointError(f"{folder / str(epoch)} holds the grid padded to {max(slots)} slots for other "
                               "devices; with several processes resume on as many devices as it was saved from")
-    restore_as = {k: np.empty(m.shape, m.dtype) for k, m in meta.items()} if repad else target
+    # Every saved array is read (orbax restores whole trees); those this state no longer has are dropped.
+    restore_as = {k: (np.empty(m.shape, m.dtype) if repad or k not in wanted else wanted[k])
+                  for k, m in flat_meta.items()}
     try:
-        saved = mngr.restore(epoch, args=ocp.args.Composite(**{item: ocp.args.StandardRestore(restore_as)}))[item]
-        state = _rebuild(abstract_state, _repadded(saved, target, grid_size) if repad else saved)
+        saved = _flat(mngr.restore(epoch, args=ocp.args.Composite(
+            **{item: ocp.args.StandardRestore(_nest(restore_as))}))[item])
     except Exception as err:
         raise _unreadable(folder, epoch, steps, err) from err
-    for got, want in zip(jax.tree.leaves(state), jax.tree.leaves(abstract_state)):
+    if "default" in sources and callable(defaults):
+        defaults = defaults()
+    default_leaves = jax.tree.leaves(defaults) if "default" in sources else [None] * len(leaves)
+    state = jax.tree.unflatten(treedef, [
+        jax.device_put(np.zeros(x.shape, x.dtype), getattr(x, "sharding", None)) if k == "empty"
+        else d if k == "default" else _repadded(saved[k], x, grid_size) if repad else saved[k]
+        for k, x, d in zip(sources, leaves, default_leaves)])
+    for got, want in zip(jax.tree.leaves(state), leaves):
         if got.shape != want.shape or got.dtype != want.dtype:
             raise CheckpointError(f"{folder / str(epoch)} holds an array {got.shape} {got.dtype} where "
                                   f"the config expects {want.shape} {want.dtype}")
     return epoch, state
+

@@ -296,7 +296,8 @@ def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_e
         # later epochs again (deterministically, into the same checkpoints).
         covered = [s for s in mngr.all_steps() if s <= outputs.complete_epochs(rows, config.grid_size)]
         first_epoch, state = checkpoint.restore(mngr, trainer.abstract_state(seed), grid_size=config.grid_size,
-                                                epoch=max(covered) if covered else None)
+                                                epoch=max(covered) if covered else None,
+                                                defaults=lambda: trainer.init(seed))  # for fields added since
         if first_epoch > config.num_epochs:
             raise ConfigError("total_steps", f"the run already has {first_epoch} epochs, more than {config.num_epochs}")
         for later in [s for s in mngr.all_steps() if s > first_epoch]:  # only once the covered one restored

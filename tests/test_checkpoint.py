@@ -1,6 +1,7 @@
 """Checkpoint and resume: identity with an uninterrupted run, crash safety, clear errors."""
 import json
 import shutil
+from pathlib import Path
 from typing import NamedTuple
 
 import jax
@@ -186,6 +187,64 @@ def test_a_checkpoint_of_another_state_layout_is_refused_by_name(tmp_path):
     mngr = checkpoint.manager(tmp_path)
     checkpoint.save(mngr, 1, saved)
     grown = (saved, jnp.zeros((2, 4)))
-    with pytest.raises(checkpoint.CheckpointError, match="holds 2 arrays where this version's state has 3"):
+    with pytest.raises(checkpoint.CheckpointError, match=r"lacks 3 of this version's state arrays \(#0/agents"):
         checkpoint.restore(mngr, jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), grown))
+    mngr.close()
+
+
+class Grown(NamedTuple):
+    """`Toy` with a field added, as a later version's state would have it."""
+    agents: Agents
+    steps: jax.Array
+    empty: jax.Array
+    visits: jax.Array
+
+
+def _abstract(tree):
+    return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype), tree)
+
+
+def test_an_older_checkpoint_restores_into_a_state_with_an_added_field(tmp_path):
+    """Leaves are found by path: an added field takes its initial value, named in a warning; the rest restore."""
+    saved = Toy(Agents({"w": jnp.arange(6.0).reshape(2, 3)}), jnp.array([5, 6]), jnp.zeros((2, 0)))
+    mngr = checkpoint.manager(tmp_path)
+    checkpoint.save(mngr, 1, saved)
+    init = Grown(Agents({"w": jnp.zeros((2, 3))}), jnp.zeros(2, jnp.int32), jnp.zeros((2, 0)), jnp.full((2, 4), 7.0))
+    with pytest.warns(UserWarning, match="initial values: visits"):
+        _, got = checkpoint.restore(mngr, _abstract(init), defaults=lambda: init)
+    np.testing.assert_array_equal(got.agents.actor["w"], saved.agents.actor["w"])
+    np.testing.assert_array_equal(got.steps, [5, 6])
+    np.testing.assert_array_equal(got.visits, np.full((2, 4), 7.0))
+    with pytest.raises(checkpoint.CheckpointError, match="lacks 1 of this version's state arrays \\(visits\\)"):
+        checkpoint.restore(mngr, _abstract(init))  # no defaults: refused by name
+    mngr.close()
+
+
+def test_a_leaf_whose_shape_changed_is_refused_by_name(tmp_path):
+    saved = Toy(Agents({"w": jnp.ones((2, 3))}), jnp.array([5, 6]), jnp.zeros((2, 0)))
+    mngr = checkpoint.manager(tmp_path)
+    checkpoint.save(mngr, 1, saved)
+    wider = saved._replace(agents=Agents({"w": jnp.ones((2, 5))}))
+    with pytest.raises(checkpoint.CheckpointError, match=r"array agents/actor/w is \(2, 3\) float32 where this "
+                                                          r"version expects \(2, 5\) float32"):
+        checkpoint.restore(mngr, _abstract(wider), defaults=lambda: wider)
+    mngr.close()
+
+
+def test_a_checkpoint_written_before_leaves_were_keyed_by_path_still_restores(tmp_path):
+    """tests/fixtures/position_keyed_run: a Toy grid of 2 saved at epoch 3 by the code that keyed leaves by position."""
+    run = tmp_path / "run"
+    shutil.copytree(Path(__file__).parent / "fixtures" / "position_keyed_run", run)
+    want = Toy(Agents({"w": jnp.arange(6.0).reshape(2, 3), "b": jnp.array([[1.5], [2.5]])}),
+               jnp.array([5, 6], jnp.int32), jnp.zeros((2, 0)))
+    mngr = checkpoint.manager(run)
+    epoch, got = checkpoint.restore(mngr, _abstract(want))
+    assert epoch == 3
+    for a, b in zip(jax.tree.leaves(got), jax.tree.leaves(want)):
+        np.testing.assert_array_equal(a, b)
+    _, actor = checkpoint.restore(mngr, _abstract(want.agents.actor), item="policy")
+    np.testing.assert_array_equal(actor["b"], want.agents.actor["b"])
+    grown = Grown(*want, jnp.zeros((2, 4)))
+    with pytest.raises(checkpoint.CheckpointError, match="holds 3 arrays where this version's state has 4"):
+        checkpoint.restore(mngr, _abstract(grown))  # by position, a changed layout cannot be matched
     mngr.close()
