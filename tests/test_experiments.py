@@ -26,7 +26,7 @@ def _fake_run(folder: Path, config, success_by_member: dict[int, list[float]]) -
     folder.mkdir(parents=True)
     outputs.write_json(folder / "config.json", config.to_dict())
     rows = []
-    for member, (eta, seed) in enumerate(config.grid):
+    for member, (eta, seed) in enumerate(config.members):
         for epoch, s in enumerate(success_by_member[member], start=1):
             rows.append(dict(member=member, seed=seed, eta=list(eta), algo=config.algo, epoch=epoch,
                              env_steps=epoch * config.steps_per_epoch, success_rate=s, eval_return=10.0 * s,
@@ -137,7 +137,7 @@ def test_run_grid_skips_a_finished_run_and_refuses_another_config(maze2_runs):
 
 def test_independent_ratio_report_names_the_best_pair(tmp_path):
     config = independent_ratios.pairs_config("smoke")
-    assert [eta for eta, _ in config.grid] == [(0.1, 0.1, 1.0), (0.1, 1.0, 1.0), (1.0, 0.1, 1.0), (1.0, 1.0, 1.0)]
+    assert [eta for eta, _ in config.members] == [(0.1, 0.1, 1.0), (0.1, 1.0, 1.0), (1.0, 0.1, 1.0), (1.0, 1.0, 1.0)]
     folder = tmp_path / "pairs"
     _fake_run(folder, config, {0: [0, 0], 1: [1, 1], 2: [0, 1], 3: [0, 0]})
     cells = independent_ratios.plot.ratio_cells([folder])
@@ -446,11 +446,11 @@ def test_long_budget_first_seed_trains_chosen_runs_into_seed_folders_and_pools_t
             long_budget.main(dataclasses.replace(args, keep_checkpoints=keep))
     assert kept == [False, True]
     assert (more_dir, more.seeds, more.coop_scale) == (tmp_path / "csac_own_scale_seeds3to5", (3, 4, 5), "own")
-    first = dataclasses.replace(more, seeds=(0, 1, 2))
+    first = more.replace(seeds=(0, 1, 2))
     _fake_run(tmp_path / "csac_own_scale", first, {m: [1, 1] if m < 3 else [0, 0] for m in range(6)})
     _fake_run(more_dir, more, {m: [0, 0] if m else [0, 1] for m in range(6)})  # member 0: η = 0.3, seed 3
     # seeds 4-5 again (an overlapping --first-seed): counted once, from the lower folder
-    _fake_run(tmp_path / "csac_own_scale_seeds4to5", dataclasses.replace(more, seeds=(4, 5)),
+    _fake_run(tmp_path / "csac_own_scale_seeds4to5", more.replace(seeds=(4, 5)),
               {m: [1, 1] for m in range(4)})
     lines = long_budget.main(dataclasses.replace(args, plot_only=True)).splitlines()
     assert "| 400 | 0.67 (6) | 0.00 (6) |" in lines  # seeds 0-2 and 3-5 pooled per ratio

@@ -244,8 +244,8 @@ def test_cli_runs_tp_and_writes_the_contract_files(primitives_run, tmp_path):
     summary = main(["--preset", "tiny", "--algo", "tp", "--primitives", str(primitives_run), "--seeds", "2",
                     "--out", str(out), "--no-progress", "--no-tensorboard"])
     config = json.loads((out / "config.json").read_text())
-    assert config["algo"] == "tp" and config["primitives"] == str(primitives_run.resolve())
-    assert config["tp_max_steps"] == 10 and config["seeds"] == [0, 1]
+    assert config["algo"] == "tp" and config["tp"]["primitives"] == str(primitives_run.resolve())
+    assert config["tp"]["tp_max_steps"] == 10 and config["grid"]["seeds"] == [0, 1]
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) == 2 * config["num_epochs"]
     for key in ("member", "seed", "epoch", "env_steps", "success_rate", "eval_return", "stage_reached_mean",

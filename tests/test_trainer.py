@@ -126,7 +126,7 @@ def test_grid_member_equals_the_run_alone(grid_run):
     alone = GRID.replace(etas=((0.9,),), seeds=(1,))
     solo_state, solo_history = _train(alone, make_grid_train(alone, make_env(alone)), 2)
     member = 3  # (eta 0.9, seed 1): ratios outermost
-    assert GRID.grid[member] == alone.grid[0]
+    assert GRID.members[member] == alone.members[0]
     for a, b in zip(jax.tree.leaves(state.agents), jax.tree.leaves(solo_state.agents)):
         np.testing.assert_allclose(a[member], b[0], rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(history[-1].train.q_loss[member], solo_history[-1].train.q_loss[0], rtol=1e-4)
@@ -181,7 +181,7 @@ def test_cli_writes_the_contract_files(tmp_path):
     summary = main(["--preset", "tiny", "--rooms", "3", "--eta-per-agent", "0.1,1.0", "--seeds", "2",
                     "--out", str(out), "--no-progress"])
     config = json.loads((out / "config.json").read_text())
-    assert config["etas"] == [[0.1, 1.0]] and config["seeds"] == [0, 1] and config["num_agents"] == 3
+    assert config["grid"]["etas"] == [[0.1, 1.0]] and config["grid"]["seeds"] == [0, 1] and config["num_agents"] == 3
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) == 2 * config["num_epochs"]
     for key in ("member", "seed", "eta", "epoch", "env_steps", "success_rate", "eval_return",
@@ -227,15 +227,13 @@ def test_summary_flags_a_critic_above_ten_times_the_value_its_rewards_allow():
 
 
 def test_every_hyperparameter_reaches_the_config_from_the_cli():
-    import tyro
+    from ccp_jax.train import config_from_args, parse_args
 
-    from ccp_jax.train import Args, config_from_args
-
-    args = tyro.cli(Args, args=["--preset", "tiny", "--tau", "0.01", "--actor-lr", "1e-3", "--critic-lr", "2e-3",
-                                "--alpha-lr", "3e-3", "--start-steps", "50", "--normalise-last", "True",
-                                "--eta-auto-range", "0.2", "0.8", "--next-action", "acting", "--normaliser", "ema",
-                                "--train-cycles-per-epoch", "10", "--network-init", "rlkit", "--initial-alpha", "0.05",
-                                "--coop-scale", "own", "--eta-auto-next-weight", "4"])
+    args = parse_args(["--preset", "tiny", "--tau", "0.01", "--actor-lr", "1e-3", "--critic-lr", "2e-3",
+                       "--alpha-lr", "3e-3", "--start-steps", "50", "--normalise-last", "True",
+                       "--eta-auto-range", "0.2", "0.8", "--next-action", "acting", "--normaliser", "ema",
+                       "--train-cycles-per-epoch", "10", "--network-init", "rlkit", "--initial-alpha", "0.05",
+                       "--coop-scale", "own", "--eta-auto-next-weight", "4"])
     config = config_from_args(args)
     assert (config.tau, config.actor_lr, config.critic_lr, config.alpha_lr) == (0.01, 1e-3, 2e-3, 3e-3)
     assert (config.start_steps, config.normalise_last, config.eta_auto_range) == (50, True, (0.2, 0.8))
@@ -243,9 +241,9 @@ def test_every_hyperparameter_reaches_the_config_from_the_cli():
     assert (config.network_init, config.initial_alpha, config.coop_scale) == ("rlkit", 0.05, "own")
     assert config.eta_auto_next_weight == 4.0
     with pytest.raises(ConfigError, match="^eta_auto_next_weight:"):
-        config_from_args(tyro.cli(Args, args=["--preset", "tiny", "--eta-auto-next-weight", "0"]))
+        config_from_args(parse_args(["--preset", "tiny", "--eta-auto-next-weight", "0"]))
     with pytest.raises(ConfigError, match="^eta_auto_range:"):
-        config_from_args(tyro.cli(Args, args=["--preset", "tiny", "--eta-auto-range", "0.9", "0.1"]))
+        config_from_args(parse_args(["--preset", "tiny", "--eta-auto-range", "0.9", "0.1"]))
 
 
 @pytest.mark.parametrize("algo", ["naive", "sac"])
@@ -419,13 +417,11 @@ def test_outcome_rule_trains_auto_members_at_its_ratios_epoch_by_epoch(rule):
 
 
 def test_outcome_rule_fields_are_validated_and_reach_the_config_from_the_cli():
-    import tyro
+    from ccp_jax.train import config_from_args, parse_args
 
-    from ccp_jax.train import Args, config_from_args
-
-    config = config_from_args(tyro.cli(Args, args=["--preset", "tiny", "--eta", "auto", "--eta-auto-rule", "outcomes",
-                                                   "--eta-auto-rate", "0.1", "--eta-auto-up-rate", "0",
-                                                   "--eta-auto-floor-step", "0.25"]))
+    config = config_from_args(parse_args(["--preset", "tiny", "--eta", "auto", "--eta-auto-rule", "outcomes",
+                                          "--eta-auto-rate", "0.1", "--eta-auto-up-rate", "0",
+                                          "--eta-auto-floor-step", "0.25"]))
     assert (config.eta_auto_rule, config.eta_auto_rate, config.eta_auto_up_rate) == ("outcomes", 0.1, 0.0)
     assert config.eta_auto_floor_step == 0.25
     with pytest.raises(ConfigError, match="^eta_auto_floor_step: bounds the outcome rules"):
