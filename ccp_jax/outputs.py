@@ -98,7 +98,7 @@ def _sac_fields(config: Config, metrics, member: int) -> dict:
         "range_next": per_agent(t.range_next),
         "pull_own": per_agent(metrics.pull_own), "pull_next": per_agent(metrics.pull_next),
         "updated": per_agent(t.updated),
-        "buffer_fill": [int(v) / config.buffer_size for v in metrics.buffer_size[member]],
+        "buffer_fill": [int(v) / config.sac.buffer_size for v in metrics.buffer_size[member]],
     }
 
 

@@ -161,8 +161,8 @@ class _SettingFlags:
 class _SectionFlags:
     """One section's group of flags (`_SettingFlags`)."""
 
-    def __init__(self, section: str, names: Sequence[str], values: Mapping[str, Any]):
-        self.section, self.names, self.values = section, names, values
+    def __init__(self, names: Sequence[str], values: Mapping[str, Any]):
+        self.names, self.values = names, values
 
 
 _REGISTRY = tyro.constructors.ConstructorRegistry()
@@ -178,8 +178,8 @@ def _settings_rule(info: tyro.constructors.StructTypeInfo) -> Optional[tyro.cons
         return None
     groups = tuple(tyro.constructors.StructFieldSpec(
         name=section, type=tyro.conf.OmitArgPrefixes[_SectionFlags],
-        default=_SectionFlags(section, [f.name for f in dataclasses.fields(SECTIONS[section])
-                                        if f.name not in CORE], flags.values),
+        default=_SectionFlags([f.name for f in dataclasses.fields(SECTIONS[section]) if f.name not in CORE],
+                              flags.values),
         helptext=" ".join(SECTIONS[section].__doc__.split()))
         for section in GROUPS)
 
@@ -193,7 +193,7 @@ def _settings_rule(info: tyro.constructors.StructTypeInfo) -> Optional[tyro.cons
 
 def _flag(name: str, default: Any) -> tyro.constructors.StructFieldSpec:
     """A setting as tyro sees it: its declared type, doc and the given default; a boolean takes a value
-    (--maze-slide False), as it always has."""
+    (--maze-slide False), the form the docs and experiment scripts use."""
     section = SECTION_OF[name]
     cls = Config if section is None else SECTIONS[section]
     kind = _types(cls)[name]
@@ -253,7 +253,7 @@ def check_per_agent_lengths(config: Config) -> None:
     """`--eta-per-agent` vectors give every cooperative agent a value. `Config` reads a 1-value vector as a
     shared ratio; from this flag, with more than one cooperative agent, it is a slip (e.g. a space for a comma)."""
     n = config.num_agents
-    for eta in config.etas:
+    for eta in config.grid.etas:
         if len(eta) == 1 and n > 2:
             example = ",".join([outputs.eta_text([eta[0]])] * (n - 1))
             raise ConfigError("eta_per_agent", f"ratio vector {outputs.eta_text(eta)} has 1 value; {n} agents need "
@@ -264,7 +264,7 @@ def check_per_agent_lengths(config: Config) -> None:
 def prepare_out(out: Optional[Path], config: Config) -> Path:
     """Creates the run folder; refuses one that already holds a run, so nothing is overwritten."""
     if out is None:
-        out = Path("runs") / f"{config.env.replace(':', '_')}-{config.algo}-{time.strftime('%Y%m%d-%H%M%S')}"
+        out = Path("runs") / f"{config.task.env.replace(':', '_')}-{config.algo}-{time.strftime('%Y%m%d-%H%M%S')}"
     if (out / "config.json").exists() or (out / "metrics.jsonl").exists():
         raise ConfigError("out", f"{out} already holds a run; choose another --out, or continue it with --resume {out}")
     out.mkdir(parents=True, exist_ok=True)
@@ -360,7 +360,7 @@ def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_e
         outputs.write_json(out / "config.json", config.to_dict())
 
     bar = tqdm(range(first_epoch, config.num_epochs), initial=first_epoch, total=config.num_epochs,
-               desc=f"{config.algo} {config.env} x{config.grid_size}", unit="epoch",
+               desc=f"{config.algo} {config.task.env} x{config.grid_size}", unit="epoch",
                disable=not (progress and lead), dynamic_ncols=True)
     # The first epoch includes compiling it: say so, as MJX envs on a CPU compile for minutes.
     bar.set_postfix_str("compiling the epoch program (once)")
@@ -428,8 +428,8 @@ def main(argv: Optional[list[str]] = None) -> dict:
         config = config_from_args(args)
         out = prepare_out(args.out, config)
     devices = grid_devices(config.grid_size)
-    print(f"{'Resuming' if args.resume else 'Training'} {config.grid_size} run(s) of {config.algo} on {config.env} "
-          f"({config.num_stages} stages, {config.num_epochs} epochs of {config.steps_per_epoch} steps) on "
+    print(f"{'Resuming' if args.resume else 'Training'} {config.grid_size} run(s) of {config.algo} on "
+          f"{config.task.env} ({config.num_stages} stages, {config.num_epochs} epochs of {config.budget.steps_per_epoch} steps) on "
           f"{len(devices)} {devices[0].platform} device{'s' * (len(devices) > 1)} -> {out}")
     summary = run(config, out, progress=args.progress, resume=args.resume is not None,
                   checkpoint_every=args.checkpoint_every, tensorboard=args.tensorboard,

@@ -101,7 +101,7 @@ def progress(members: list[dict]) -> list[str]:
     for m in members:
         if not (Path(m["run"]) / "summary.json").exists():
             done[m["run"]] = max(done.get(m["run"], 0), m["env_steps"])
-    return [f"{run}: {steps:,} of {outputs.read_config(run).total_steps:,} env steps"
+    return [f"{run}: {steps:,} of {outputs.read_config(run).budget.total_steps:,} env steps"
             for run, steps in done.items()]
 
 

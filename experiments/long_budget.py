@@ -226,7 +226,7 @@ def main(args: Args) -> str:
     if not found:
         raise SystemExit(f"error: out: no runs in {out.resolve()}; train them first (without --plot-only)")
     first = next(run for folder in plan.runs for run in seed_folders(out, folder) if (run / "config.json").exists())
-    episodes = outputs.read_config(first).eval_episodes
+    episodes = outputs.read_config(first).budget.eval_episodes
     milestones = args.milestones or plan.milestones
     text = ("Mean evaluation success over seeds (in parentheses: seeds that reached that step), single evaluations "
             f"of {episodes} deterministic episodes:\n\n"

@@ -48,9 +48,9 @@ def test_unknown_preset():
 
 def test_paper_preset_matches_the_paper():
     c = make_config("paper")
-    assert (c.gamma, c.buffer_size, c.batch_size, c.max_episode_steps, c.tau) == (0.95, 1_000_000, 256, 1000, 0.005)
-    assert (c.steps_per_epoch, c.train_loops_per_epoch, c.hidden, c.start_steps) == (5000, 1000, (256, 256), 1000)
-    assert c.num_epochs == 600 and c.eval_episodes == 10 and c.absorbing_success
+    assert (c.sac.gamma, c.sac.buffer_size, c.sac.batch_size, c.task.max_episode_steps, c.sac.tau) == (0.95, 1_000_000, 256, 1000, 0.005)
+    assert (c.budget.steps_per_epoch, c.budget.train_loops_per_epoch, c.sac.hidden, c.budget.start_steps) == (5000, 1000, (256, 256), 1000)
+    assert c.num_epochs == 600 and c.budget.eval_episodes == 10 and c.ccp.absorbing_success
 
 
 def test_eta_vectors_and_grid_order():
@@ -65,8 +65,8 @@ def test_eta_vectors_and_grid_order():
 
 def test_cli_arguments_resolve():
     c = config_from_args(parse_args(["--rooms", "3", "--eta-per-agent", "0.1,1.0", "0.5,0.5", "--seeds", "2", "--preset", "tiny"]))
-    assert c.etas == ((0.1, 1.0), (0.5, 0.5)) and c.seeds == (0, 1) and c.grid_size == 4
-    assert config_from_args(parse_args(["--target-entropy", "-0.5", "--preset", "tiny"])).target_entropy == -0.5
+    assert c.grid.etas == ((0.1, 1.0), (0.5, 0.5)) and c.grid.seeds == (0, 1) and c.grid_size == 4
+    assert config_from_args(parse_args(["--target-entropy", "-0.5", "--preset", "tiny"])).sac.target_entropy == -0.5
     robot = config_from_args(parse_args(["--maze-reverse", "True", "--maze-slide", "False", "--preset", "tiny"]))
     from ccp_jax.envs import make_env
     assert (make_env(robot).geometry.reverse, make_env(robot).geometry.slide) == (True, False)
@@ -81,7 +81,7 @@ def test_cli_arguments_resolve():
         config_from_args(parse_args(["--rooms", "4", "--eta-per-agent", "0.1,1.0", "--preset", "tiny"]))
     with pytest.raises(ConfigError, match="^eta_per_agent: ratio vector 0.1 has 1 value; 3 agents need 2 values"):
         config_from_args(parse_args(["--rooms", "3", "--eta-per-agent", "0.1", "0.5", "--preset", "tiny"]))  # a space for a comma
-    assert config_from_args(parse_args(["--rooms", "2", "--eta-per-agent", "0.1", "--preset", "tiny"])).etas == ((0.1,),)
+    assert config_from_args(parse_args(["--rooms", "2", "--eta-per-agent", "0.1", "--preset", "tiny"])).grid.etas == ((0.1,),)
     with pytest.raises(ConfigError, match="^rooms: --rooms sets the maze's number of rooms; env 'peg'"):
         config_from_args(parse_args(["--env", "peg", "--rooms", "3", "--preset", "tiny"]))
     assert config_from_args(parse_args(["--env", "peg", "--preset", "tiny"])).num_stages == 2
@@ -118,10 +118,10 @@ def test_a_config_json_from_before_the_kinematics_fields_reads_as_the_robot_it_t
     from ccp_jax.config import Config
     old_maze = {k: v for k, v in make_config("tiny").flat().items() if k not in ("maze_reverse", "maze_slide")}
     legacy = Config.from_dict(old_maze)
-    assert (legacy.maze_reverse, legacy.maze_slide) == (True, False)
+    assert (legacy.ablations.maze_reverse, legacy.ablations.maze_slide) == (True, False)
     assert legacy.differing(make_config("tiny")) == ["maze_reverse", "maze_slide"]  # so train --resume keeps them
     written = Config.from_dict(make_config("tiny").to_dict())  # a file that records them keeps its values
-    assert (written.maze_reverse, written.maze_slide) == (False, True)
+    assert (written.ablations.maze_reverse, written.ablations.maze_slide) == (False, True)
     old_peg = {k: v for k, v in make_config("tiny", env="peg").flat().items() if k not in ("maze_reverse", "maze_slide")}
     assert Config.from_dict(old_peg) == make_config("tiny", env="peg")  # other envs have no kinematics to recall
 
@@ -161,8 +161,8 @@ def test_a_resume_that_changes_a_field_names_it_even_where_the_saved_ratios_no_l
     for argv, field in ((["--rooms", "4"], "rooms"), (["--algo", "naive"], "algo"), (["--env", "peg"], "env")):
         with pytest.raises(ConfigError, match=f"^{field}: the run in {tmp_path} was trained with"):
             resume_config(parse_args(["--resume", str(tmp_path)] + argv))
-    longer = ["--resume", str(tmp_path), "--total-steps", str(2 * saved.total_steps)]
-    assert resume_config(parse_args(longer)).total_steps == 2 * saved.total_steps
+    longer = ["--resume", str(tmp_path), "--total-steps", str(2 * saved.budget.total_steps)]
+    assert resume_config(parse_args(longer)).budget.total_steps == 2 * saved.budget.total_steps
 
 
 def _tupled(x):
@@ -187,7 +187,7 @@ def test_every_committed_config_json_reads_with_its_own_values():
         settings = {k: _tupled(v) for k, v in written.items() if k in SECTION_OF}
         assert {k: flat[k] for k in settings} == settings, path
         for name in set(SECTION_OF) - set(settings):
-            legacy = config.env == "maze" and name in LEGACY_MAZE
+            legacy = config.task.env == "maze" and name in LEGACY_MAZE
             assert flat[name] == (LEGACY_MAZE[name] if legacy else defaults[name]), (path, name)
         for name in ("num_stages", "num_agents", "num_epochs", "grid_size"):
             assert getattr(config, name) == written[name], (path, name)
