@@ -597,8 +597,9 @@ def migrate(d: Mapping[str, Any]) -> dict:
     """
     version = d.get("version", 1)
     if not isinstance(version, int) or not 1 <= version <= VERSION:
-        raise ConfigError("version", f"config.json version {version!r} is not one this ccp-jax reads (1..{VERSION}); "
-                                     "a newer ccp-jax wrote it")
+        newer = "; a newer ccp-jax wrote it" if isinstance(version, int) and version > VERSION else ""
+        raise ConfigError("version", f"config.json version {version!r} is not one this ccp-jax reads "
+                                     f"(1..{VERSION}){newer}")
     if version == 1:
         flat = {k: v for k, v in d.items() if k in SECTION_OF}
         if flat.get("env", Task.env) == "maze":

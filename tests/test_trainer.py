@@ -192,7 +192,7 @@ def test_cli_writes_the_contract_files(tmp_path):
     saved = json.loads((out / "summary.json").read_text())
     assert [m["seed"] for m in saved["members"]] == [0, 1] == [m["seed"] for m in summary["members"]]
     assert all(0.0 <= m["final_success"] <= 1.0 for m in saved["members"])
-    assert saved["q_bound"] == pytest.approx(1 / (1 - config["gamma"]))
+    assert saved["q_bound"] == pytest.approx(1 / (1 - config["sac"]["gamma"]))
     for m in saved["members"]:
         mine = np.array([r["q_max"] for r in rows if r["member"] == m["member"]])  # [epochs, agents]
         np.testing.assert_allclose(m["q_peak"], mine.max(0))
