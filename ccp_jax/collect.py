@@ -80,9 +80,9 @@ def completed_channels(config: Config, next_stage: jax.Array, success: jax.Array
     only completes with the whole task).
     """
     done = jnp.zeros(success.shape + (config.num_agents,), bool)
-    if config.absorbing_success:
+    if config.ccp.absorbing_success:
         done |= success[..., None] > 0
-    if config.absorbing_stages and config.num_agents > 1:
+    if config.ccp.absorbing_stages and config.num_agents > 1:
         done |= next_stage[..., None] > jnp.arange(config.num_agents)
     return done.astype(jnp.float32)
 
@@ -115,10 +115,10 @@ def auto_reset(env: Env, nxt: State, key: jax.Array) -> State:
 def make_collect(config: Config, env: Env, actor: Actor) -> Callable:
     """`collect(actor_params, env_state, buffer, key, env_steps) -> (env_state, buffer, stats)`.
 
-    Runs `config.collect_iters` vectorised steps over `config.num_envs` envs;
-    before `config.start_steps` total env steps, actions are uniform random.
+    Runs `config.collect_iters` vectorised steps over `config.budget.num_envs` envs;
+    before `config.budget.start_steps` total env steps, actions are uniform random.
     """
-    num_envs = config.num_envs
+    num_envs = config.budget.num_envs
     v_step = jax.vmap(env.step)
 
     def one_step(actor_params, carry, _):
@@ -126,9 +126,9 @@ def make_collect(config: Config, env: Env, actor: Actor) -> Callable:
         key, k_act, k_rand, k_reset = jax.random.split(key, 4)
         agent = agent_of(config, env_state.info["stage"])
         mean, log_std = policy_mean_and_log_std(actor, actor_params, env_state.obs, agent)
-        policy_action, _ = sample_action(mean, log_std, k_act, config.tanh_log_prob)
+        policy_action, _ = sample_action(mean, log_std, k_act, config.ablations.tanh_log_prob)
         random_action = jax.random.uniform(k_rand, policy_action.shape, minval=-1.0, maxval=1.0)
-        action = jnp.where(env_steps < config.start_steps, random_action, policy_action)
+        action = jnp.where(env_steps < config.budget.start_steps, random_action, policy_action)
 
         nxt = v_step(env_state, action)
         success = nxt.metrics["success"]
@@ -175,13 +175,13 @@ def episode_metrics(state: State, ret: jax.Array, length: jax.Array, num_stages:
 
 def make_evaluate(config: Config, env: Env, actor: Actor, episodes: int | None = None,
                   stochastic: bool = False) -> Callable:
-    """`evaluate(actor_params, key) -> EvalMetrics` over `episodes` (default `config.eval_episodes`) episodes.
+    """`evaluate(actor_params, key) -> EvalMetrics` over `episodes` (default `config.budget.eval_episodes`) episodes.
 
     Actions are the policies' deterministic means (docs/design.md#hyperparameters), or with `stochastic` sampled as in
     training. Episodes run in parallel until all are done (or the time limit); a finished
     episode is frozen rather than reset.
     """
-    episodes = config.eval_episodes if episodes is None else episodes
+    episodes = config.budget.eval_episodes if episodes is None else episodes
     num_stages = config.num_stages
     v_step, v_reset = jax.vmap(env.step), jax.vmap(env.reset)
 
@@ -194,7 +194,7 @@ def make_evaluate(config: Config, env: Env, actor: Actor, episodes: int | None =
 
         def cond(carry):
             state, _, length, _ = carry
-            return jnp.any(state.done == 0) & (length.max() < config.max_episode_steps)
+            return jnp.any(state.done == 0) & (length.max() < config.task.max_episode_steps)
 
         def body(carry):
             state, ret, length, key = carry
@@ -202,7 +202,7 @@ def make_evaluate(config: Config, env: Env, actor: Actor, episodes: int | None =
             mean, log_std = policy_mean_and_log_std(actor, actor_params, state.obs, agent)
             if stochastic:
                 key, k_act = jax.random.split(key)
-                action, _ = sample_action(mean, log_std, k_act, config.tanh_log_prob)
+                action, _ = sample_action(mean, log_std, k_act, config.ablations.tanh_log_prob)
             else:
                 action = deterministic_action(mean)
             nxt = v_step(state, action)

@@ -147,5 +147,5 @@ def default_members_at_once(devices: Sequence[jax.Device], local_members: int, c
         cores_per_device = available_cores() / len(jax.local_devices(backend="cpu"))
     if cores_per_device < 2:
         return 1
-    per_member = critic_slots(config) * config.batch_size * max(config.hidden)
+    per_member = critic_slots(config) * config.sac.batch_size * max(config.sac.hidden)
     return max(1, CPU_VMAP_FLOATS // per_member)

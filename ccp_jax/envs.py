@@ -10,26 +10,26 @@ if TYPE_CHECKING:
     from ccp_jax.config import Config
 
 ENV_NAMES = ("maze", "peg", "pusher")
-# Envs whose number of stages does not depend on `Config.rooms`.
+# Envs whose number of stages does not depend on the `rooms` setting.
 FIXED_STAGES = {"peg": 2, "pusher": 2}
 
 
 def make_env(config: "Config") -> "Env":
-    """The env of `config.env`: a built-in name or 'module.path:factory'."""
-    if config.env == "maze":
+    """The env of `config.task.env`: a built-in name or 'module.path:factory'."""
+    if config.task.env == "maze":
         from envs_mjx.maze import Maze
 
-        return Maze(rooms=config.rooms, episode_length=config.max_episode_steps, reverse=config.maze_reverse,
-                    slide=config.maze_slide)
-    if config.env == "peg":
+        return Maze(rooms=config.task.rooms, episode_length=config.task.max_episode_steps,
+                    reverse=config.ablations.maze_reverse, slide=config.ablations.maze_slide)
+    if config.task.env == "peg":
         from envs_mjx.peg_in_hole import PegInHole
 
-        return PegInHole(episode_length=config.max_episode_steps)
-    if config.env == "pusher":
+        return PegInHole(episode_length=config.task.max_episode_steps)
+    if config.task.env == "pusher":
         from envs_mjx.pusher import Pusher
 
-        return Pusher(episode_length=config.max_episode_steps)
-    return user_env(config.env)
+        return Pusher(episode_length=config.task.max_episode_steps)
+    return user_env(config.task.env)
 
 
 def user_env(spec: str, check: bool = False) -> "Env":

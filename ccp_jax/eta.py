@@ -13,12 +13,11 @@ The grid carries a run's ratios as float32[G, N] with "auto" as NaN (`grid_etas`
 NaNs of the outcome rules by their current ratios (`epoch_eta`), the update those of "ranges" (`actor_eta`).
 docs/design.md#the-method states η* and the rules.
 
-`Config` validates its ratios here and must load without JAX (`python -m ccp_jax.plot` does not start
+`Config` parses its ratios here and must load without JAX (`python -m ccp_jax.plot` does not start
 it), so the functions that trace import jax.numpy themselves.
 """
 from __future__ import annotations
 
-import math
 from typing import TYPE_CHECKING, Literal, Sequence
 
 import numpy as np
@@ -41,7 +40,7 @@ Ratio = float | str  # a number in [0, 1] or AUTO
 # ------------------------------------------------------------------ as given
 
 def parse_eta(text: str, field: str = "eta") -> Ratio:
-    """A ratio as typed: '0.3' -> 0.3, 'auto' -> AUTO; ConfigError naming `field` otherwise (`check_ratios` checks the range)."""
+    """A ratio as typed: '0.3' -> 0.3, 'auto' -> AUTO; ConfigError naming `field` otherwise (`Config` checks the range)."""
     if text.strip() == AUTO:
         return AUTO
     try:
@@ -76,49 +75,6 @@ def grid_etas(vectors: Sequence[Sequence[Ratio]], num_agents: int) -> np.ndarray
     return eta.reshape(len(vectors), num_agents)
 
 
-def check_ratios(config: Config) -> None:
-    """ConfigError unless `config.etas` is a grid of distinct, well-formed ratio vectors for its agents."""
-    if not config.etas:
-        raise ConfigError("eta", "at least one ratio is needed")
-    n = config.num_agents
-    if config.algo != "csac" and len(config.etas) > 1:
-        raise ConfigError("eta", f"--algo {config.algo} trains every agent on its own critic alone (η = 1): a grid "
-                                 f"of ratios would train identical runs; leave --eta out "
-                                 f"(got {[list(e) for e in config.etas]})")
-    for eta in config.etas:
-        if len(eta) not in (1, n - 1, n) or (len(eta) == n and n > 1 and not config.normalise_last):
-            allowed = "1 value" if n <= 2 else f"1 value or {n - 1} values (one per cooperative agent)"
-            raise ConfigError("eta_per_agent", f"ratio vector {tuple(eta)} has {len(eta)} values; "
-                              f"{n} agent{'s' if n > 1 else ''} need{'' if n > 1 else 's'} {allowed}")
-        for x in eta:
-            if x != AUTO and not (isinstance(x, (int, float)) and 0.0 <= float(x) <= 1.0):
-                raise ConfigError("eta", f"ratios must be numbers in [0, 1] or {AUTO!r}, got {x!r}")
-    vectors = [per_agent(e, n) for e in config.etas]
-    if len(set(vectors)) != len(vectors):  # with the same seeds, a repeated ratio trains identical runs
-        raise ConfigError("eta", f"ratios must be distinct, got {[list(e) for e in config.etas]}")
-
-
-def check_auto(config: Config) -> None:
-    """ConfigError unless the "auto" settings (`eta_auto_*`) are usable."""
-    if not (math.isfinite(config.eta_auto_next_weight) and config.eta_auto_next_weight > 0):
-        raise ConfigError("eta_auto_next_weight", f"must be a positive finite number, got {config.eta_auto_next_weight}")
-    if config.eta_auto_rule not in ETA_AUTO_RULES:
-        raise ConfigError("eta_auto_rule", f"unknown rule {config.eta_auto_rule!r}; choose one of {ETA_AUTO_RULES}")
-    if not (math.isfinite(config.eta_auto_rate) and 0.0 < config.eta_auto_rate <= 1.0):
-        raise ConfigError("eta_auto_rate", f"must be in (0, 1], got {config.eta_auto_rate}")
-    if config.eta_auto_up_rate is not None and not (math.isfinite(config.eta_auto_up_rate)
-                                                    and 0.0 <= config.eta_auto_up_rate <= 1.0):
-        raise ConfigError("eta_auto_up_rate", f"must be in [0, 1] (or None: eta_auto_rate), got {config.eta_auto_up_rate}")
-    if not (math.isfinite(config.eta_auto_floor_step) and 0.0 <= config.eta_auto_floor_step <= 1.0):
-        raise ConfigError("eta_auto_floor_step", f"must be in [0, 1], got {config.eta_auto_floor_step}")
-    if config.eta_auto_floor_step and config.eta_auto_rule not in OUTCOME_RULES:
-        raise ConfigError("eta_auto_floor_step", f"bounds the outcome rules {OUTCOME_RULES}; the rule "
-                          f"{config.eta_auto_rule!r} clips η* to eta_auto_range instead")
-    lo, hi = config.eta_auto_range
-    if not 0.0 <= lo <= hi <= 1.0:
-        raise ConfigError("eta_auto_range", f"must satisfy 0 <= low <= high <= 1, got {config.eta_auto_range}")
-
-
 # ------------------------------------------------------------ in the update
 
 def eta_star(range_own: jax.Array, range_next: jax.Array, eps: float, next_weight: float = 1.0) -> jax.Array:
@@ -141,8 +97,8 @@ def actor_eta(eta: jax.Array, running_own: jax.Array, running_next: jax.Array, c
     """
     import jax.numpy as jnp
 
-    auto = jnp.clip(eta_star(running_own, running_next, config.norm_eps, config.eta_auto_next_weight),
-                    *config.eta_auto_range)
+    auto = jnp.clip(eta_star(running_own, running_next, config.ccp.norm_eps, config.ablations.eta_auto_next_weight),
+                    *config.ccp.eta_auto_range)
     return jnp.where(cooperative, jnp.where(jnp.isnan(eta), auto, eta), 1.0)
 
 
@@ -152,7 +108,7 @@ def initial_auto(config: Config) -> jax.Array:
     """The outcome rules' ratios before the first epoch, float32[N]: the middle of `eta_auto_range`."""
     import jax.numpy as jnp
 
-    return jnp.full((config.num_agents,), sum(config.eta_auto_range) / 2, jnp.float32)
+    return jnp.full((config.num_agents,), sum(config.ccp.eta_auto_range) / 2, jnp.float32)
 
 
 def epoch_eta(eta: jax.Array, eta_auto: jax.Array, config: Config) -> jax.Array:
@@ -160,7 +116,7 @@ def epoch_eta(eta: jax.Array, eta_auto: jax.Array, config: Config) -> jax.Array:
     so the learner sees numbers; under "ranges" the NaNs stay for the update to resolve (`actor_eta`)."""
     import jax.numpy as jnp
 
-    if config.eta_auto_rule not in OUTCOME_RULES:
+    if config.ccp.eta_auto_rule not in OUTCOME_RULES:
         return eta
     return jnp.where(jnp.isnan(eta), eta_auto, eta)
 
@@ -171,10 +127,10 @@ def next_auto(eta_auto: jax.Array, gate: jax.Array, stages: jax.Array, successes
 
     gate bool[N]: `successor_succeeded`, accumulated over every epoch so far; stages, successes as `outcome_eta`'s.
     """
-    if config.eta_auto_rule not in OUTCOME_RULES:
+    if config.ccp.eta_auto_rule not in OUTCOME_RULES:
         return eta_auto
-    return outcome_eta(eta_auto, stages, successes, config.eta_auto_rate, config.eta_auto_range,
-                       config.eta_auto_up_rate, config.eta_auto_rule, gate, config.eta_auto_floor_step)
+    return outcome_eta(eta_auto, stages, successes, config.ccp.eta_auto_rate, config.ccp.eta_auto_range,
+                       config.ablations.eta_auto_up_rate, config.ccp.eta_auto_rule, gate, config.ablations.eta_auto_floor_step)
 
 
 def _reached(stages: jax.Array, successes: jax.Array) -> jax.Array:

@@ -42,7 +42,7 @@ def evaluate_run(run_dir: str | Path, episodes: int = 100, stochastic: bool = Fa
     evaluate = make_evaluate(config, make_env(config), actor, episodes=episodes, stochastic=stochastic)
     metrics = jax.device_get(jax.jit(jax.vmap(evaluate, in_axes=(0, None)))(actors, jax.random.PRNGKey(seed)))
     return [{"member": member, "seed": member_seed, "eta": list(eta), "episodes": episodes, "stochastic": stochastic,
-             **outputs.eval_fields(metrics, member)} for member, (eta, member_seed) in enumerate(config.grid)]
+             **outputs.eval_fields(metrics, member)} for member, (eta, member_seed) in enumerate(config.members)]
 
 
 def table(rows: list[dict]) -> str:

@@ -75,9 +75,9 @@ def export_chain(run_dir: str | Path, member: int = 0, epoch: Optional[int] = No
         exported = jax.export.export(fn, platforms=tuple(platforms))(*args)
     except Exception:  # noqa: BLE001 - a jax that cannot lower for an accelerator here still exports for the CPU
         exported = jax.export.export(fn, platforms=("cpu",))(*args)
-    eta, seed = config.grid[member]
+    eta, seed = config.members[member]
     meta = dict(run_dir=str(run_dir.resolve()), member=member, epoch="latest" if epoch is None else epoch, seed=seed,
-                eta=[outputs.eta_text([e]) for e in eta], algo=config.algo, env=config.env,
+                eta=[outputs.eta_text([e]) for e in eta], algo=config.algo, env=config.task.env,
                 num_stages=config.num_stages, num_agents=config.num_agents, obs_size=int(obs_size),
                 action_size=int(exported.out_avals[0].shape[-1]), platforms=list(exported.platforms),
                 jax_version=jax.__version__,

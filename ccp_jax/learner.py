@@ -62,11 +62,11 @@ class Networks(NamedTuple):
 
 def make_networks(config: Config, action_size: int) -> Networks:
     return Networks(
-        actor=Actor(config.hidden, action_size, init_scheme=config.network_init),
-        critic=TwinCritic(config.hidden, init_scheme=config.network_init),
-        actor_tx=optax.adam(config.actor_lr),
-        critic_tx=optax.adam(config.critic_lr),
-        alpha_tx=optax.adam(config.alpha_lr),
+        actor=Actor(config.sac.hidden, action_size, init_scheme=config.ablations.network_init),
+        critic=TwinCritic(config.sac.hidden, init_scheme=config.ablations.network_init),
+        actor_tx=optax.adam(config.sac.actor_lr),
+        critic_tx=optax.adam(config.sac.critic_lr),
+        alpha_tx=optax.adam(config.sac.alpha_lr),
     )
 
 
@@ -184,7 +184,7 @@ def make_chain(config: Config) -> Chain:
     agent_ids = jnp.arange(n)
     slot_ids = jnp.concatenate([agent_ids, agent_ids[1:]]) if cooperative else agent_ids
     has_next = agent_ids < n - 1
-    coop_actor = (has_next & cooperative) | ((agent_ids == n - 1) & config.normalise_last)
+    coop_actor = (has_next & cooperative) | ((agent_ids == n - 1) & config.ablations.normalise_last)
     return Chain(num_agents=n, cooperative=cooperative, agent_ids=agent_ids, slot_ids=slot_ids, has_next=has_next,
                  coop_actor=coop_actor)
 
@@ -200,12 +200,12 @@ class Setup(NamedTuple):
     @property
     def target_entropy(self) -> float:
         """H̄ of the temperature loss: −|A| (RLkit's) unless the config sets one."""
-        return -float(self.action_size) if self.config.target_entropy is None else self.config.target_entropy
+        return -float(self.action_size) if self.config.sac.target_entropy is None else self.config.sac.target_entropy
 
     @property
     def acting_next(self) -> bool:
         """Whether a critic target at s' in stage n + 1 takes π_{n+1}'s action (`next_action="acting"`)."""
-        return self.chain.cooperative and self.config.next_action == "acting"
+        return self.chain.cooperative and self.config.ablations.next_action == "acting"
 
 
 def make_learner(config: Config, nets: Networks, action_size: int) -> Learner:
@@ -241,7 +241,7 @@ def update_with_noise(setup: Setup, agents: AgentState, batch: Transition, eta: 
     critic, critic_opt, q_loss = update_critic(setup, agents, batch, targets, ready)
     actor, actor_opt, norm, pi = update_actor(setup, agents, batch, eta, alpha, ready, noise)
     log_alpha, alpha_opt = update_alpha(setup, agents, pi.log_prob, ready)
-    target_critic = optax.incremental_update(critic, agents.target_critic, setup.config.tau)
+    target_critic = optax.incremental_update(critic, agents.target_critic, setup.config.sac.tau)
     agents = AgentState(norm=norm, actor=actor, critic=critic, target_critic=target_critic, log_alpha=log_alpha,
                         actor_opt=actor_opt, critic_opt=critic_opt, alpha_opt=alpha_opt)
     metrics = UpdateMetrics(q_loss=q_loss, pi_loss=pi.loss, alpha=alpha, log_prob=jnp.mean(pi.log_prob, -1),
@@ -267,7 +267,7 @@ def critic_targets(setup: Setup, actor: Params, target_critic: Params, batch: Tr
     q_next = _min_q(setup, c.slot_params(target_critic), c.slot_data(batch.next_obs), c.slot_data(next_act))
     soft_target = jax.vmap(losses.soft_target, in_axes=(0, 0, 0, 0, 0, 0, None, None))
     return soft_target(c.channel(c.slot_data(batch.rewards)), q_next, c.slot_data(next_logp), c.slot_data(next_alpha),
-                       c.slot_data(batch.terminal), c.channel(c.slot_data(batch.completed)), setup.config.gamma,
+                       c.slot_data(batch.terminal), c.channel(c.slot_data(batch.completed)), setup.config.sac.gamma,
                        setup.config.value_bound)  # a done subtask's value
 
 
@@ -356,10 +356,10 @@ def actor_terms(setup: Setup, critic: Params, norm: NormState, obs: jax.Array, a
     ones, zeros = jnp.ones((n,)), jnp.zeros((n,))
     terms = ActorTerms(loss=sac, log_prob=log_prob, q=q, eta_star=ones, eta_used=ones, range_own=zeros,
                        range_next=zeros)
-    if not (c.cooperative or config.normalise_last):
+    if not (c.cooperative or config.ablations.normalise_last):
         return terms, norm
     q_hat, norm, scaled = normalised_pair(setup, c.pair(q_slots), eta, norm, ready)
-    units = losses.coop_units(config.coop_scale, scaled.range_own, config.norm_eps)
+    units = losses.coop_units(config.ablations.coop_scale, scaled.range_own, config.ccp.norm_eps)
     coop = jax.vmap(losses.coop_actor_loss)(log_prob, q_hat[:, 0], q_hat[:, 1], scaled.eta_used, alpha, units)
     return terms._replace(loss=jnp.where(c.coop_actor, coop, sac), **scaled._asdict()), norm
 
@@ -375,19 +375,19 @@ class Scaled(NamedTuple):
 
 def normalised_pair(setup: Setup, q_pair: jax.Array, eta: jax.Array, norm: NormState,
                     ready: jax.Array) -> tuple[jax.Array, NormState, Scaled]:
-    """Q̂ of own and next critics, q_pair [N, 2, B] -> [N, 2, B], under `config.normaliser` (`losses.normalise_batch`).
+    """Q̂ of own and next critics, q_pair [N, 2, B] -> [N, 2, B], under `config.ablations.normaliser` (`losses.normalise_batch`).
 
     Also returns the running bounds after this batch (moved only for `ready` agents) and `Scaled`: the
     ratios η the actor loss uses (`eta.actor_eta`, from the running ranges) and the ranges divided by.
     """
     config, c = setup.config, setup.chain
-    q = losses.normalise_batch(q_pair, norm.lo, norm.hi, config.normaliser, config.norm_eps, config.norm_ema_rate,
-                               config.norm_floor)
+    q = losses.normalise_batch(q_pair, norm.lo, norm.hi, config.ablations.normaliser, config.ccp.norm_eps, config.ccp.norm_ema_rate,
+                               config.ablations.norm_floor)
     running = q.running_hi - q.running_lo  # [N, 2]
     eta_used = ratios.actor_eta(eta, running[:, 0], running[:, 1], c.has_next & c.cooperative, config)
     keep = ready[:, None]
     norm = NormState(lo=jnp.where(keep, q.running_lo, norm.lo), hi=jnp.where(keep, q.running_hi, norm.hi))
-    eta_star = jnp.where(c.has_next, ratios.eta_star(q.batch_range[:, 0], q.batch_range[:, 1], config.norm_eps), 1.0)
+    eta_star = jnp.where(c.has_next, ratios.eta_star(q.batch_range[:, 0], q.batch_range[:, 1], config.ccp.norm_eps), 1.0)
     return q.q_hat, norm, Scaled(eta_star=eta_star, eta_used=eta_used, range_own=q.scale[:, 0],
                                  range_next=jnp.where(c.has_next, q.scale[:, 1], 0.0))
 
@@ -410,7 +410,7 @@ def update_alpha(setup: Setup, agents: AgentState, log_prob: jax.Array,
 def _policy(setup: Setup, actor: Params, obs: jax.Array, noise: jax.Array) -> tuple[jax.Array, jax.Array]:
     """a ~ π_n(s) for every agent from standard-normal noise: obs [K, B, o], noise [K, B, a] -> ([K, B, a], [K, B])."""
     mean, log_std = jax.vmap(setup.nets.actor.apply)(actor, obs)
-    squash = functools.partial(squashed_gaussian, tanh_log_prob=setup.config.tanh_log_prob)
+    squash = functools.partial(squashed_gaussian, tanh_log_prob=setup.config.ablations.tanh_log_prob)
     return jax.vmap(squash)(mean, log_std, noise)
 
 
@@ -455,7 +455,7 @@ def action_pulls(setup: Setup, agents: AgentState, batch: Transition, eta: jax.A
     with the running bounds as they stand, without updating them).
     """
     c, n = setup.chain, setup.chain.num_agents
-    if not (c.cooperative or setup.config.normalise_last):
+    if not (c.cooperative or setup.config.ablations.normalise_last):
         zeros = jnp.zeros((n,))
         return zeros, zeros
     noise = _normal(jax.random.split(key, n), batch.obs.shape[1], setup.action_size)
@@ -466,7 +466,7 @@ def action_pulls(setup: Setup, agents: AgentState, batch: Transition, eta: jax.A
         q_pair = c.pair(_min_q(setup, slots, c.slot_data(batch.obs), c.slot_data(a)))
         q_hat, _, scaled = normalised_pair(setup, q_pair, eta, agents.norm, jnp.zeros((n,), bool))
         # From the normaliser's bounds: already constants.
-        units = losses.coop_units(setup.config.coop_scale, scaled.range_own, setup.config.norm_eps)[:, None]
+        units = losses.coop_units(setup.config.ablations.coop_scale, scaled.range_own, setup.config.ccp.norm_eps)[:, None]
         eta_used = scaled.eta_used[:, None]
         return (units * eta_used * q_hat[:, 0],
                 units * jnp.where(c.has_next[:, None], 1 - eta_used, 0.0) * q_hat[:, 1])

@@ -51,7 +51,8 @@ class TensorBoardLogger:
         eta, seed = config.grid_arrays()
         self.writers = [SummaryWriter(logdir=str(Path(out) / "tb" / f"member_{k}")) for k in range(config.grid_size)]
         for k, writer in enumerate(self.writers):
-            writer.add_text("member", f"algo {config.algo}, env {config.env}, eta {eta[k].tolist()}, seed {seed[k]}")
+            writer.add_text("member",
+                            f"algo {config.algo}, env {config.task.env}, eta {eta[k].tolist()}, seed {seed[k]}")
 
     def write(self, rows: Sequence[dict]) -> None:
         for row in rows:

@@ -69,7 +69,7 @@ def metric_rows(config: Config, epoch: int, metrics, wall_s: float) -> list[dict
     fields are SAC's (`EpochMetrics`) or TP's (`TPEpochMetrics`, see `_tp_fields`).
     """
     rows = []
-    for member, (eta, seed) in enumerate(config.grid):
+    for member, (eta, seed) in enumerate(config.members):
         row = {
             "member": member, "seed": seed, "eta": list(eta), "algo": config.algo, "epoch": epoch,
             "env_steps": int(metrics.env_steps[member]),
@@ -98,7 +98,7 @@ def _sac_fields(config: Config, metrics, member: int) -> dict:
         "range_next": per_agent(t.range_next),
         "pull_own": per_agent(metrics.pull_own), "pull_next": per_agent(metrics.pull_next),
         "updated": per_agent(t.updated),
-        "buffer_fill": [int(v) / config.buffer_size for v in metrics.buffer_size[member]],
+        "buffer_fill": [int(v) / config.sac.buffer_size for v in metrics.buffer_size[member]],
     }
 
 
@@ -261,7 +261,7 @@ def complete_epochs(rows: list[dict], grid_size: int) -> int:
 def summarise(config: Config, rows: list[dict], wall_s: float | None = None) -> dict:
     """Per member: final success (mean of the last `FINAL_WINDOW` epochs), learning milestones, critic peaks."""
     members = []
-    for member, (eta, seed) in enumerate(config.grid):
+    for member, (eta, seed) in enumerate(config.members):
         mine = sorted((r for r in rows if r["member"] == member), key=lambda r: r["epoch"])
         success = [r["success_rate"] for r in mine]
         last = success[-FINAL_WINDOW:]

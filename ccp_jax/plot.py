@@ -36,7 +36,7 @@ def new_figure(width: float = 6.4, height: float = 4.0) -> Figure:
 
 
 def _task(config: Config) -> str:
-    return f"{config.env}-{config.num_stages}" if config.env == "maze" else config.env
+    return f"{config.task.env}-{config.num_stages}" if config.task.env == "maze" else config.task.env
 
 
 def _value(row: dict, metric: str) -> Optional[float]:

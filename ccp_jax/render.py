@@ -190,8 +190,8 @@ def render(run_dir: Path, member: int = 0, episodes: int = 2, out: Optional[Path
     env = make_env(config)
     draw = frame_renderer(env)
     policy = load_policy(run_dir, member, epoch=epoch)
-    eps = rollout(env, policy, jax.random.PRNGKey(seed), episodes, config.max_episode_steps)
-    label = f"{group_label(('', config.algo, config.grid[member][0]))}  member {member}"
+    eps = rollout(env, policy, jax.random.PRNGKey(seed), episodes, config.task.max_episode_steps)
+    label = f"{group_label(('', config.algo, config.members[member][0]))}  member {member}"
     hold = max(1, int(fps / 2))
     clips = []
     for e, ep in enumerate(eps):

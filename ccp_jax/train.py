@@ -12,11 +12,18 @@ import envs_mjx
 if __name__ == "__main__":  # the CLI: MJX's CPU flag and quiet import, before the imports below load brax and MJX
     envs_mjx.configure_cpu()
 
+import argparse
+import ast
 import dataclasses
+import functools
+import inspect
 import os
+import sys
+import textwrap
 import time
+import typing
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Annotated, Any, Mapping, Optional, Sequence
 
 import jax
 import numpy as np
@@ -26,8 +33,8 @@ from tqdm.auto import tqdm
 
 from ccp_jax import checkpoint, loggers, outputs
 from ccp_jax.devices import CpuDevices, grid_devices, split_host_cpu
-from ccp_jax.config import (PRESETS, Config, ConfigError, CoopScale, NetworkInit, NextAction, Normaliser, PresetName, TanhLogProb,
-                             make_config)
+from ccp_jax.config import (PRESETS, SECTION_OF, SECTIONS, Config, ConfigError, PresetName, make_config,
+                             preset_settings)
 from ccp_jax.eta import EtaAutoRule, parse_eta, parse_eta_vector
 from ccp_jax.envs import make_env, user_env
 from ccp_jax.grid import check_members_at_once, make_grid_train
@@ -35,109 +42,48 @@ from ccp_jax.tp.primitives import primitives_config
 from ccp_jax.tp.trainer import make_tp_grid
 
 
-@dataclasses.dataclass
+@dataclasses.dataclass(frozen=True)
+class Hosts:
+    """Devices and hosts: where the grid trains. None of these changes results beyond float rounding
+    (docs/multi-device.md)."""
+
+    cpu_devices: CpuDevices = "auto"
+    """On a CPU: split it into this many XLA devices, so grid members train side by side (auto: the count that wastes least for this grid, of up to twice the cores, ccp_jax.devices.grid_devices: one run keeps the whole CPU as one device, 3 runs on 2 cores take 3; 1: the whole CPU as one device). A count set in $XLA_FLAGS wins."""
+    members_at_once: Optional[int] = None
+    """Grid members each device advances together (vmapped); the rest run one group after another in the same program. Default: all on GPU/TPU; on a CPU device of several cores as many as keep the stacked critic activations small (ccp_jax.devices.default_members_at_once: 12 [64, 64] SAC members, 4 2-agent or 2 3-agent CSAC members), on a CPU split into a device per core 1."""
+    distributed: bool = False
+    """Multi-host: call jax.distributed.initialize() first (every host runs the same command; see README)."""
+    coordinator: Optional[str] = None
+    """With --distributed: host0:port of the coordinator (auto-detected on SLURM, Open MPI, Kubernetes, Cloud TPU)."""
+    num_processes: Optional[int] = None
+    """With --distributed: the number of hosts (auto-detected where the coordinator is)."""
+    process_id: Optional[int] = None
+    """With --distributed: this host's index (auto-detected where the coordinator is)."""
+
+
+@dataclasses.dataclass(frozen=True)
 class Args:
     """Train CSAC (or a baseline) on a multi-stage task; every ratio × seed in one vmapped program.
 
-    Options left unset take the preset's value (or, with --resume, the resumed run's).
+    Options left unset take the preset's value (or, with --resume, the resumed run's): the defaults shown.
     """
 
-    env: Optional[str] = None
-    """Environment: maze (default), peg, pusher, or 'module.path:factory' returning an env that meets the contract (check it with envs_mjx.contract.check_env)."""
-    rooms: Optional[int] = None
-    """Number of maze rooms (stages); default 2."""
-    algo: Optional[Literal["csac", "naive", "sac", "tp"]] = None
-    """csac (default): cooperative agents; naive: independent agents; sac: one end-to-end agent; tp: transition policies between frozen primitives (needs --primitives)."""
-    primitives: Optional[Path] = None
-    """--algo tp: run folder of a finished --algo naive run (same env and rooms) whose agents are the frozen primitives."""
-    primitives_member: Optional[int] = None
-    """--algo tp: which grid member of the --primitives run supplies the primitives (default 0)."""
-    tp_max_steps: Optional[int] = None
-    """--algo tp: transition steps before termination is forced (default 100)."""
-    tp_init_episodes: Optional[int] = None
-    """--algo tp: deterministic primitive episodes that seed the permanent success states (default 100)."""
-    tp_prox_updates: Optional[int] = None
-    """--algo tp: proximity-predictor Adam steps per epoch (default 785)."""
-    tp_ppo_epochs: Optional[int] = None
-    tp_buffer_size: Optional[int] = None
-    eta: Optional[tuple[str, ...]] = None
-    """Grid of shared cooperative ratios, each in [0, 1] or 'auto' (running η*); default 0.1."""
+    preset: Annotated[Optional[PresetName], tyro.conf.arg(help_behavior_hint="(default: small, or the resumed run's)")] = None
+    """paper: the paper's sizes; small: [64, 64] nets (docs/design.md#the-learning-yardstick); tiny: seconds, for tests."""
+    eta: Annotated[Optional[tuple[str, ...]], tyro.conf.arg(help_behavior_hint="(default: 0.1)")] = None
+    """Grid of shared cooperative ratios, each in [0, 1] or 'auto' (estimated while training: --eta-auto-rule)."""
     eta_per_agent: Optional[tuple[str, ...]] = None
     """Grid of per-agent ratio vectors, each 'A,B,...' with one value (or 'auto') per cooperative agent (rooms − 1)."""
-    seeds: Optional[int] = None
-    """Seeds per ratio (default 1): first_seed .. first_seed + seeds − 1."""
+    seeds: Annotated[Optional[int], tyro.conf.arg(help_behavior_hint="(default: 1)")] = None
+    """Seeds per ratio: first_seed .. first_seed + seeds − 1."""
     first_seed: int = 0
-    preset: Optional[PresetName] = None
-    """paper: the paper's sizes; small (default): [64, 64] nets (SPEC §7); tiny: seconds-scale, for tests."""
-    total_steps: Optional[int] = None
-    """Environment steps per run (default: the preset's). May be raised when resuming."""
+    """The first seed of --seeds."""
     out: Optional[Path] = None
     """Run folder (default runs/<env>-<algo>-<time>); must not already hold a run."""
     resume: Optional[Path] = None
-    """Continue the run in this folder from its latest checkpoint."""
+    """Continue the run in this folder from its latest checkpoint; only --total-steps may change."""
     checkpoint_every: int = 10
     """Save a checkpoint every K epochs (and always after the last); 0: only after the last."""
-    maze_reverse: Optional[bool] = None
-    """Maze: True lets a[0] < 0 drive the robot backwards (v = a[0] v_max); default False: v = (a[0] + 1)/2 v_max."""
-    maze_slide: Optional[bool] = None
-    """Maze: a step blocked by a wall slides along it (default True; False: it stops there)."""
-    num_envs: Optional[int] = None
-    hidden: Optional[tuple[int, ...]] = None
-    network_init: Optional[NetworkInit] = None
-    """Initial weights: flax (default: lecun-normal kernels) or rlkit (RLkit's SAC: fan-in uniform hidden layers, last layers U(±3e-3) critic / U(±1e-3) actor)."""
-    batch_size: Optional[int] = None
-    buffer_size: Optional[int] = None
-    steps_per_epoch: Optional[int] = None
-    train_loops_per_epoch: Optional[int] = None
-    train_cycles_per_epoch: Optional[int] = None
-    """Split each epoch into K cycles of (collect, update) (default 1, the paper's: all steps, then all updates)."""
-    eval_episodes: Optional[int] = None
-    max_episode_steps: Optional[int] = None
-    gamma: Optional[float] = None
-    tau: Optional[float] = None
-    """Polyak rate of the target critics (default 0.005)."""
-    actor_lr: Optional[float] = None
-    critic_lr: Optional[float] = None
-    alpha_lr: Optional[float] = None
-    target_entropy: Optional[float] = None
-    """Entropy the temperatures α steer the policies towards (default −|A|, the action size negated)."""
-    initial_alpha: Optional[float] = None
-    """Every temperature α before training (default 1, RLkit's)."""
-    start_steps: Optional[int] = None
-    """Uniform-random env steps before the policies act (default 1000)."""
-    normalise_last: Optional[bool] = None
-    """The last agent's actor uses its normalised critic (η_N = 1 on Q̂_N) instead of the plain SAC loss."""
-    eta_auto_range: Optional[tuple[float, float]] = None
-    """--eta auto: the interval η* is clipped to (default 0.05 0.95)."""
-    eta_auto_next_weight: Optional[float] = None
-    """--eta auto: κ in η* = Ran(Q_n) / (Ran(Q_n) + κ Ran(Q_{n+1})), the ratio whose objective is Q_n + κ Q_{n+1} (default 1, the paper's appendix)."""
-    eta_auto_rule: Optional[EtaAutoRule] = None
-    """--eta auto follows: ranges (η* of the critics' running ranges, the paper's appendix, default), outcomes (each epoch η_n moves by --eta-auto-rate × (training episodes failing in stage n − those failing in stage n + 1) / those entering stage n, from the middle of --eta-auto-range), gated (outcomes with only the upward term until a training episode has succeeded in stage n + 1, only the downward term after) or trusted (as gated, but before that success both terms, with η no lower than the middle of --eta-auto-range)."""
-    eta_auto_rate: Optional[float] = None
-    """--eta auto with --eta-auto-rule outcomes, gated or trusted: η's largest move per epoch (default 0.05)."""
-    eta_auto_up_rate: Optional[float] = None
-    """--eta-auto-rule outcomes, gated or trusted: the rate of the own-failure (upward) term if it differs from --eta-auto-rate; 0: η only falls."""
-    eta_auto_floor_step: Optional[float] = None
-    """--eta-auto-rule outcomes, gated or trusted: agent n's ratio falls no lower than the low end of --eta-auto-range + n × this (at most the range's middle); default 0."""
-    normaliser: Optional[Normaliser] = None
-    """How critics are scaled in the actor loss: batch (the paper's, default), ema (running min/max), floor, none (raw Q: C_n is the value of the cooperative reward η r_n + (1 − η) r_{n+1})."""
-    norm_floor: Optional[float] = None
-    """Smallest range the floor normaliser divides by, in reward units (default 1)."""
-    norm_ema_rate: Optional[float] = None
-    coop_scale: Optional[CoopScale] = None
-    """Units of the cooperative objective in the actor loss: unit (the paper's, normalised to [0, 1], default) or own (times the own critic's normaliser scale: α in Q_n's units, as Naive's; η = 1 is Naive)."""
-    absorbing_stages: Optional[bool] = None
-    """Critic n bootstraps the exact value 1/(1 − γ) once stage n is done (default on; off = the paper's literal rule)."""
-    next_action: Optional[NextAction] = None
-    """Whose action bootstraps critic targets at s': own (the paper's π_n, default) or acting (π_{n+1} once s' is in stage n+1)."""
-    absorbing_success: Optional[bool] = None
-    """Success bootstraps the absorbing value of all-ones rewards (default on; off = success ends with value 0)."""
-    tanh_log_prob: Optional[TanhLogProb] = None
-    """The tanh correction in log π: exact (default) or rlkit (RLkit's log(1 − tanh² + 1e-6), capped at saturation)."""
-    cpu_devices: CpuDevices = "auto"
-    """On a CPU: split it into this many XLA devices, so grid members train side by side (auto: the count that wastes least for this grid, of up to twice the cores, ccp_jax.devices.grid_devices: one run keeps the whole CPU as one device, 3 runs on 2 cores take 3; 1: the whole CPU as one device). A count set in $XLA_FLAGS wins. Does not change results beyond float rounding."""
-    members_at_once: Optional[int] = None
-    """Grid members each device advances together (vmapped); the rest run one group after another in the same program. Default: all on GPU/TPU; on a CPU device of several cores as many as keep the stacked critic activations small (ccp_jax.devices.default_members_at_once: 12 [64, 64] SAC members, 4 2-agent or 2 3-agent CSAC members), on a CPU split into a device per core 1. Does not change results beyond float rounding."""
     progress: bool = True
     """Show a progress bar."""
     compile_cache: bool = True
@@ -146,23 +92,129 @@ class Args:
     """Write TensorBoard event files, one folder per grid member (DIR/tb/member_K)."""
     wandb_project: Optional[str] = None
     """Also log to this Weights & Biases project (needs `pip install wandb`)."""
-    distributed: bool = False
-    """Multi-host: call jax.distributed.initialize() first (every host runs the same command; see README)."""
-    coordinator: Optional[str] = None
-    """With --distributed: host0:port of the coordinator (auto-detected on SLURM, Open MPI, Kubernetes, Cloud TPU)."""
-    num_processes: Optional[int] = None
-    process_id: Optional[int] = None
+    settings: Annotated[Any, tyro.conf.arg(name=""), tyro.conf.OmitArgPrefixes] = dataclasses.field(default_factory=dict)
+    """The `Config` settings the command line gives, by flat name (`parse_args`); the others are the preset's (or
+    the resumed run's). Their flags are shown with these options and in one group per section (`_REGISTRY`)."""
+    devices: tyro.conf.OmitArgPrefixes[Hosts] = Hosts()
 
 
-OVERRIDES = ("maze_reverse", "maze_slide", "total_steps", "num_envs", "hidden", "network_init", "batch_size",
-             "buffer_size", "steps_per_epoch", "train_loops_per_epoch", "train_cycles_per_epoch", "eval_episodes", "max_episode_steps", "gamma", "absorbing_stages",
-             "absorbing_success", "tanh_log_prob", "normaliser", "norm_floor", "norm_ema_rate", "coop_scale", "next_action", "tau",
-             "actor_lr", "critic_lr", "alpha_lr", "target_entropy", "initial_alpha", "start_steps", "normalise_last", "eta_auto_range",
-             "eta_auto_next_weight", "eta_auto_rule", "eta_auto_rate", "eta_auto_up_rate", "eta_auto_floor_step",
-             "primitives_member", "tp_max_steps", "tp_init_episodes", "tp_prox_updates", "tp_ppo_epochs", "tp_buffer_size")
-
-
+# Settings shown with the run options; the others are grouped by their `Config` section (GROUPS). The grid's
+# settings are given by --eta / --eta-per-agent / --seeds / --first-seed.
+CORE = ("algo", "env", "rooms", "max_episode_steps", "total_steps", "eta_auto_rule")
+GROUPS = ("budget", "sac", "ccp", "tp", "ablations")
+PROG = "python -m ccp_jax.train"
 DEFAULT_ETA = ("0.1",)  # --eta when neither ratio flag is given (the paper's best 3-room ratio)
+
+
+def parse_args(argv: Optional[Sequence[str]] = None) -> Args:
+    """The command line as `Args`: the run options, and in `settings` the `Config` settings it gives.
+
+    Every setting of `Config` is a flag named after it (`--actor-lr`), typed, documented and defaulted by its
+    declaration in ccp_jax/config.py; --help shows the defaults of the --preset (and --resume) given, which are
+    read first. A setting counts as given when its flag is on the command line or its value differs from that
+    default.
+    """
+    argv = sys.argv[1:] if argv is None else list(argv)
+    base = _defaults(argv)
+    args = tyro.cli(Args, args=argv, default=Args(settings=_SettingFlags(base)), registry=_REGISTRY, prog=PROG)
+    named = _named_flags(argv)
+    given = {k: v for k, v in args.settings.items() if k in named or v != base[k]}
+    if given.get("primitives") is not None:  # absolute, so a resumed run finds it from any folder
+        given["primitives"] = str(Path(given["primitives"]).resolve())
+    return dataclasses.replace(args, settings=given)
+
+
+def _defaults(argv: Sequence[str]) -> dict[str, Any]:
+    """The settings a command line starts from: the --resume run's (unreadable: as if new, `resume_config` names
+    the fault), with the --preset given on top; else the preset's (default small)."""
+    pre = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    pre.add_argument("--preset")
+    pre.add_argument("--resume", type=Path)
+    known, _ = pre.parse_known_args(argv)
+    preset = known.preset if known.preset in PRESETS else None
+    if known.resume is not None:
+        try:
+            return {**outputs.read_config(known.resume).flat(), **PRESETS.get(preset, {})}
+        except (OSError, ValueError, TypeError, KeyError):  # JSON and config faults are ValueErrors
+            pass
+    return preset_settings(preset or "small")
+
+
+def _named_flags(argv: Sequence[str]) -> set[str]:
+    """The flat names of the flags on a command line (--actor-lr 1e-3, --actor_lr=1e-3, --no-progress)."""
+    names = set()
+    for token in argv:
+        if token.startswith("--"):
+            name = token[2:].partition("=")[0].replace("-", "_")
+            names.update((name, name.removeprefix("no_")))
+    return names
+
+
+class _SettingFlags:
+    """The default of `Args.settings` while parsing: every setting's value before the command line (`_defaults`).
+    `_REGISTRY` shows it to tyro as CORE's flags, then one group per section of GROUPS; tyro gives back a dict."""
+
+    def __init__(self, values: Mapping[str, Any]):
+        self.values = values
+
+
+class _SectionFlags:
+    """One section's group of flags (`_SettingFlags`)."""
+
+    def __init__(self, names: Sequence[str], values: Mapping[str, Any]):
+        self.names, self.values = names, values
+
+
+_REGISTRY = tyro.constructors.ConstructorRegistry()
+
+
+@_REGISTRY.struct_rule
+def _settings_rule(info: tyro.constructors.StructTypeInfo) -> Optional[tyro.constructors.StructConstructorSpec]:
+    flags = info.default
+    if isinstance(flags, _SectionFlags):
+        return tyro.constructors.StructConstructorSpec(
+            instantiate=dict, fields=tuple(_flag(name, flags.values[name]) for name in flags.names))
+    if not isinstance(flags, _SettingFlags):
+        return None
+    groups = tuple(tyro.constructors.StructFieldSpec(
+        name=section, type=tyro.conf.OmitArgPrefixes[_SectionFlags],
+        default=_SectionFlags([f.name for f in dataclasses.fields(SECTIONS[section]) if f.name not in CORE],
+                              flags.values),
+        helptext=" ".join(SECTIONS[section].__doc__.split()))
+        for section in GROUPS)
+
+    def instantiate(**given) -> dict:
+        return {k: v for name, value in given.items()
+                for k, v in (value.items() if name in GROUPS else [(name, value)])}
+
+    return tyro.constructors.StructConstructorSpec(
+        instantiate=instantiate, fields=tuple(_flag(name, flags.values[name]) for name in CORE) + groups)
+
+
+def _flag(name: str, default: Any) -> tyro.constructors.StructFieldSpec:
+    """A setting as tyro sees it: its declared type, doc and the given default; a boolean takes a value
+    (--maze-slide False), the form the docs and experiment scripts use."""
+    section = SECTION_OF[name]
+    cls = Config if section is None else SECTIONS[section]
+    kind = _types(cls)[name]
+    if kind is bool:
+        kind = tyro.conf.FlagConversionOff[bool]
+    return tyro.constructors.StructFieldSpec(name=name, type=kind, default=default, helptext=_docstrings(cls)[name])
+
+
+@functools.cache
+def _types(cls: type) -> dict[str, Any]:
+    """A section's field types, resolved (config.py's annotations are strings)."""
+    return typing.get_type_hints(cls, localns={"EtaAutoRule": EtaAutoRule})
+
+
+@functools.cache
+def _docstrings(cls: type) -> dict[str, str]:
+    """The docstring under each field of a dataclass, by field name, as one line."""
+    body = ast.parse(textwrap.dedent(inspect.getsource(cls))).body[0].body
+    return {node.target.id: " ".join(doc.value.value.split()) for node, doc in zip(body, body[1:])
+            if isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name)
+            and isinstance(doc, ast.Expr) and isinstance(doc.value, ast.Constant) and isinstance(doc.value.value, str)}
 
 
 def config_from_args(args: Args, base: Optional[Config] = None) -> Config:
@@ -171,23 +223,18 @@ def config_from_args(args: Args, base: Optional[Config] = None) -> Config:
         raise ConfigError("seeds", f"must be >= 1, got {args.seeds}")
     if args.eta is not None and args.eta_per_agent is not None:
         raise ConfigError("eta", "give either --eta or --eta-per-agent, not both")
-    fields = {} if base is None else dataclasses.asdict(base)
+    fields = {} if base is None else base.flat()
     if base is None or args.preset is not None:
-        preset = args.preset or "small"
-        if preset not in PRESETS:
-            raise ConfigError("preset", f"unknown preset {preset!r}; choose one of {tuple(PRESETS)}")
-        fields.update(PRESETS[preset])
-    explicit = {k: getattr(args, k) for k in ("env", "rooms", "algo") + OVERRIDES if getattr(args, k) is not None}
+        fields.update(PRESETS[args.preset or "small"])
+    explicit = dict(args.settings)
     if args.eta_per_agent is not None:
         explicit["etas"] = tuple(parse_eta_vector(t) for t in args.eta_per_agent)
     elif args.eta is not None or base is None:
         explicit["etas"] = tuple((parse_eta(x),) for x in (args.eta or DEFAULT_ETA))
     if args.seeds is not None or base is None:
         explicit["seeds"] = tuple(range(args.first_seed, args.first_seed + (args.seeds or 1)))
-    if args.primitives is not None:  # absolute, so a resumed run finds it from any folder
-        explicit["primitives"] = str(args.primitives.resolve())
     fields.update(explicit)
-    if args.rooms is not None and fields.get("env", "maze") != "maze":  # else silently replaced by the env's stages
+    if "rooms" in args.settings and fields.get("env", "maze") != "maze":  # else silently replaced by the env's stages
         raise ConfigError("rooms", f"--rooms sets the maze's number of rooms; env {fields['env']!r} has its own stages")
     if ":" in fields.get("env", ""):  # a user's env decides its own number of stages, once it is checked
         fields["rooms"] = user_env(fields["env"], check=True).num_stages
@@ -206,7 +253,7 @@ def check_per_agent_lengths(config: Config) -> None:
     """`--eta-per-agent` vectors give every cooperative agent a value. `Config` reads a 1-value vector as a
     shared ratio; from this flag, with more than one cooperative agent, it is a slip (e.g. a space for a comma)."""
     n = config.num_agents
-    for eta in config.etas:
+    for eta in config.grid.etas:
         if len(eta) == 1 and n > 2:
             example = ",".join([outputs.eta_text([eta[0]])] * (n - 1))
             raise ConfigError("eta_per_agent", f"ratio vector {outputs.eta_text(eta)} has 1 value; {n} agents need "
@@ -217,7 +264,7 @@ def check_per_agent_lengths(config: Config) -> None:
 def prepare_out(out: Optional[Path], config: Config) -> Path:
     """Creates the run folder; refuses one that already holds a run, so nothing is overwritten."""
     if out is None:
-        out = Path("runs") / f"{config.env.replace(':', '_')}-{config.algo}-{time.strftime('%Y%m%d-%H%M%S')}"
+        out = Path("runs") / f"{config.task.env.replace(':', '_')}-{config.algo}-{time.strftime('%Y%m%d-%H%M%S')}"
     if (out / "config.json").exists() or (out / "metrics.jsonl").exists():
         raise ConfigError("out", f"{out} already holds a run; choose another --out, or continue it with --resume {out}")
     out.mkdir(parents=True, exist_ok=True)
@@ -243,19 +290,20 @@ def resume_config(args: Args) -> Config:
     if args.out is not None and args.out != run_dir:
         raise ConfigError("out", f"--out {args.out} differs from --resume {run_dir}; give only --resume")
 
+    trained = saved.flat()
+
     def refused(name: str, got) -> ConfigError:
-        return ConfigError(name, f"the run in {run_dir} was trained with {getattr(saved, name)!r}, got {got!r}; "
+        return ConfigError(name, f"the run in {run_dir} was trained with {trained[name]!r}, got {got!r}; "
                                  "start a new run to change it")
 
-    # Fields given again are compared before the config is built: a changed one (algo, rooms, env) can make the
+    # Settings given again are compared before the config is built: a changed one (algo, rooms, env) can make the
     # saved ratios invalid, and that error would not name what changed.
-    for name in ("env", "rooms", "algo") + OVERRIDES:
-        got = getattr(args, name)
-        if name != "total_steps" and got is not None and got != getattr(saved, name):
+    for name, got in args.settings.items():
+        if name != "total_steps" and got != trained[name]:
             raise refused(name, got)
     config = config_from_args(args, base=saved)
     if changed := saved.differing(config, ignore=("total_steps",)):
-        raise refused(changed[0], getattr(config, changed[0]))
+        raise refused(changed[0], config.flat()[changed[0]])
     return config
 
 
@@ -313,7 +361,7 @@ def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_e
         outputs.write_json(out / "config.json", config.to_dict())
 
     bar = tqdm(range(first_epoch, config.num_epochs), initial=first_epoch, total=config.num_epochs,
-               desc=f"{config.algo} {config.env} x{config.grid_size}", unit="epoch",
+               desc=f"{config.algo} {config.task.env} x{config.grid_size}", unit="epoch",
                disable=not (progress and lead), dynamic_ncols=True)
     # The first epoch includes compiling it: say so, as MJX envs on a CPU compile for minutes.
     bar.set_postfix_str("compiling the epoch program (once)")
@@ -361,17 +409,18 @@ def to_host(tree):
 
 
 def main(argv: Optional[list[str]] = None) -> dict:
-    args = tyro.cli(Args, args=argv)
-    if args.cpu_devices != "auto" and args.cpu_devices < 1:
-        raise ConfigError("cpu_devices", f"must be >= 1 or auto, got {args.cpu_devices}")
+    args = parse_args(argv)
+    hosts = args.devices
+    if hosts.cpu_devices != "auto" and hosts.cpu_devices < 1:
+        raise ConfigError("cpu_devices", f"must be >= 1 or auto, got {hosts.cpu_devices}")
     envs_mjx.configure_cpu()  # before anything starts JAX (the `ccp-train` entry point comes here)
-    split_host_cpu(args.cpu_devices, planned_grid_size(args))
-    if args.distributed:
-        jax.distributed.initialize(coordinator_address=args.coordinator, num_processes=args.num_processes,
-                                   process_id=args.process_id)
+    split_host_cpu(hosts.cpu_devices, planned_grid_size(args))
+    if hosts.distributed:
+        jax.distributed.initialize(coordinator_address=hosts.coordinator, num_processes=hosts.num_processes,
+                                   process_id=hosts.process_id)
     if args.checkpoint_every < 0:
         raise ConfigError("checkpoint_every", f"must be >= 0, got {args.checkpoint_every}")
-    check_members_at_once(args.members_at_once)  # before the run folder is made
+    check_members_at_once(hosts.members_at_once)  # before the run folder is made
     if args.compile_cache:
         enable_compile_cache()
     if args.resume is not None:
@@ -380,12 +429,12 @@ def main(argv: Optional[list[str]] = None) -> dict:
         config = config_from_args(args)
         out = prepare_out(args.out, config)
     devices = grid_devices(config.grid_size)
-    print(f"{'Resuming' if args.resume else 'Training'} {config.grid_size} run(s) of {config.algo} on {config.env} "
-          f"({config.num_stages} stages, {config.num_epochs} epochs of {config.steps_per_epoch} steps) on "
+    print(f"{'Resuming' if args.resume else 'Training'} {config.grid_size} run(s) of {config.algo} on "
+          f"{config.task.env} ({config.num_stages} stages, {config.num_epochs} epochs of {config.budget.steps_per_epoch} steps) on "
           f"{len(devices)} {devices[0].platform} device{'s' * (len(devices) > 1)} -> {out}")
     summary = run(config, out, progress=args.progress, resume=args.resume is not None,
                   checkpoint_every=args.checkpoint_every, tensorboard=args.tensorboard,
-                  wandb_project=args.wandb_project, members_at_once=args.members_at_once, devices=devices)
+                  wandb_project=args.wandb_project, members_at_once=hosts.members_at_once, devices=devices)
     print(outputs.summary_table(summary))
     print(f"wall time {summary['wall_s']:.0f} s; files in {out}")
     return summary

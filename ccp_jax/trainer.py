@@ -79,7 +79,7 @@ def make_train(config: Config, env: Env) -> Trainer:
         k_train, k_pulls = jax.random.split(k_train)
         agents, env_state, buffer, env_steps, stats, train_metrics = run_cycles(
             config, collect, learner, state, eta, k_collect, k_train)
-        pull_own, pull_next = learner.action_pulls(agents, replay.sample(buffer, k_pulls, config.batch_size), eta,
+        pull_own, pull_next = learner.action_pulls(agents, replay.sample(buffer, k_pulls, config.sac.batch_size), eta,
                                                    k_pulls)
         metrics = EpochMetrics(env_steps=env_steps, eval=evaluate(agents.actor, k_eval),
                                train=jax.tree.map(lambda x: x.mean(0), train_metrics),
@@ -104,11 +104,11 @@ def init_state(config: Config, env: Env, nets: Networks, obs_size: int, action_s
     key = jax.random.PRNGKey(seed)
     key, k_agents, k_env = jax.random.split(key, 3)
     agents = init_agents(nets, k_agents, config.num_agents, obs_size, action_size,
-                         value_range=config.value_bound, initial_alpha=config.initial_alpha)
+                         value_range=config.value_bound, initial_alpha=config.sac.initial_alpha)
     num_channels = 1 if config.num_agents == 1 else config.num_stages
     buffer = replay.init_buffer(replay.zero_transition(obs_size, action_size, num_channels),
-                                config.num_agents, config.buffer_size)
-    env_state = jax.vmap(env.reset)(jax.random.split(k_env, config.num_envs))
+                                config.num_agents, config.sac.buffer_size)
+    env_state = jax.vmap(env.reset)(jax.random.split(k_env, config.budget.num_envs))
     return TrainState(agents=agents, buffer=buffer, env_state=env_state, key=key,
                       env_steps=jnp.int32(0), epoch=jnp.int32(0), eta_auto=ratios.initial_auto(config),
                       successor_succeeded=jnp.zeros((config.num_agents,), bool))
@@ -122,7 +122,7 @@ def run_cycles(config: Config, collect: Callable, learner: Learner, state: Train
     Returns (agents, env_state, buffer, env_steps, the epoch's collection stats summed over rounds,
     UpdateMetrics with leaves [train_loops_per_epoch, N]).
     """
-    cycles = config.train_cycles_per_epoch
+    cycles = config.ablations.train_cycles_per_epoch
     # One cycle keeps the key stream of the single-collection epoch.
     per_cycle = (lambda k: k[None]) if cycles == 1 else (lambda k: jax.random.split(k, cycles))
 
@@ -130,10 +130,10 @@ def run_cycles(config: Config, collect: Callable, learner: Learner, state: Train
         agents, env_state, buffer, env_steps = carry
         k_collect, k_train = keys
         env_state, buffer, stats = collect(agents.actor, env_state, buffer, k_collect, env_steps)
-        ready = replay.ready(buffer, config.batch_size)
+        ready = replay.ready(buffer, config.sac.batch_size)
         agents, train_metrics = train_loops(learner, agents, buffer, eta, ready, k_train,
-                                            config.train_loops_per_epoch // cycles, config.batch_size)
-        env_steps = env_steps + config.steps_per_epoch // cycles
+                                            config.budget.train_loops_per_epoch // cycles, config.sac.batch_size)
+        env_steps = env_steps + config.budget.steps_per_epoch // cycles
         return (agents, env_state, buffer, env_steps), (stats, train_metrics)
 
     (agents, env_state, buffer, env_steps), (stats, train_metrics) = jax.lax.scan(

@@ -121,11 +121,11 @@ def run_grid(config: Config, out: Path, checkpoint_every: int = 10, log=print, k
 
     summary_path, config_path = out / "summary.json", out / "config.json"
     if config_path.exists():
-        saved = Config.from_dict(read_json(config_path))
+        saved = outputs.read_config(out)
         if changed := saved.differing(config):
             name = changed[0]
-            raise ConfigError(name, f"{out} holds a run with {getattr(saved, name)!r}, this "
-                                    f"experiment needs {getattr(config, name)!r}; use another --out")
+            raise ConfigError(name, f"{out} holds a run with {saved.flat()[name]!r}, this "
+                                    f"experiment needs {config.flat()[name]!r}; use another --out")
         if summary_path.exists():
             log(f"done already: {out}")
             return read_json(summary_path)
@@ -138,8 +138,8 @@ def run_grid(config: Config, out: Path, checkpoint_every: int = 10, log=print, k
         for name in ("config.json", outputs.METRICS, outputs.COMPACTED):
             (out / name).unlink(missing_ok=True)
     out.mkdir(parents=True, exist_ok=True)
-    log(f"{'resuming' if resume else 'training'} {config.algo} on {config.env}"
-        f"{'-' + str(config.rooms) if config.env == 'maze' else ''} x{config.grid_size} -> {out}")
+    log(f"{'resuming' if resume else 'training'} {config.algo} on {config.task.env}"
+        f"{'-' + str(config.task.rooms) if config.task.env == 'maze' else ''} x{config.grid_size} -> {out}")
     train.enable_compile_cache()
     start = time.time()
     summary = train.run(config, out, progress=True, resume=resume, checkpoint_every=checkpoint_every,
@@ -175,14 +175,13 @@ def merged_summary(folders: Sequence[Path], in_progress: bool = False) -> Option
     (`wall_s` None; final success = the mean of the last evaluations logged).
     """
     from ccp_jax import outputs
-    from ccp_jax.config import Config
     from ccp_jax.plot import refuse_to_pool
 
     if not folders:
         return None
     seen, members = {}, []
     for folder in folders:
-        settings = Config.from_dict(read_json(Path(folder) / "config.json"))
+        settings = outputs.read_config(folder)
         if in_progress and not (Path(folder) / "summary.json").exists():
             summary = outputs.summarise(settings, outputs.read_rows(outputs.metrics_file(folder)))
         else:

@@ -36,7 +36,7 @@ import tyro
 from scipy import stats
 
 from ccp_jax import outputs, plot
-from common import cli, mean_std, merged_summary, read_json, success_at, write_text
+from common import cli, mean_std, merged_summary, success_at, write_text
 
 
 @dataclasses.dataclass
@@ -101,7 +101,7 @@ def progress(members: list[dict]) -> list[str]:
     for m in members:
         if not (Path(m["run"]) / "summary.json").exists():
             done[m["run"]] = max(done.get(m["run"], 0), m["env_steps"])
-    return [f"{run}: {steps:,} of {read_json(Path(run) / 'config.json')['total_steps']:,} env steps"
+    return [f"{run}: {steps:,} of {outputs.read_config(run).budget.total_steps:,} env steps"
             for run, steps in done.items()]
 
 

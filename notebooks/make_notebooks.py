@@ -68,7 +68,7 @@ from ccp_jax.plot import heatmap
 success = np.zeros((len(ratios), len(ratios)))
 for m in summary["members"]:
     i, j = ratios.index(m["eta"][0]), ratios.index(m["eta"][1])
-    success[i, j] += m["final_success"] / len(config.seeds)
+    success[i, j] += m["final_success"] / len(config.grid.seeds)
 heatmap(success, ratios, ratios, title="final success over (η1, η2)").savefig(out / "heatmap.png", dpi=100)
 display(Image(str(out / "heatmap.png")))
 best = np.unravel_index(success.argmax(), success.shape)

@@ -102,7 +102,7 @@ def test_resume_can_extend_the_budget(tmp_path, uninterrupted):
     rows = _rows(out)
     assert [r["epoch"] for r in rows] == [1, 1, 2, 2, 3, 3, 4, 4]
     assert rows[:6] == _rows(uninterrupted)
-    assert json.loads((out / "config.json").read_text())["total_steps"] == 800
+    assert json.loads((out / "config.json").read_text())["budget"]["total_steps"] == 800
 
 
 def test_mismatched_config_is_refused_and_nothing_changes(uninterrupted):

@@ -2,7 +2,7 @@
 import pytest
 
 from ccp_jax.config import ConfigError, make_config
-from ccp_jax.train import Args, config_from_args
+from ccp_jax.train import Args, config_from_args, parse_args
 
 
 @pytest.mark.parametrize("overrides, field", [
@@ -48,9 +48,9 @@ def test_unknown_preset():
 
 def test_paper_preset_matches_the_paper():
     c = make_config("paper")
-    assert (c.gamma, c.buffer_size, c.batch_size, c.max_episode_steps, c.tau) == (0.95, 1_000_000, 256, 1000, 0.005)
-    assert (c.steps_per_epoch, c.train_loops_per_epoch, c.hidden, c.start_steps) == (5000, 1000, (256, 256), 1000)
-    assert c.num_epochs == 600 and c.eval_episodes == 10 and c.absorbing_success
+    assert (c.sac.gamma, c.sac.buffer_size, c.sac.batch_size, c.task.max_episode_steps, c.sac.tau) == (0.95, 1_000_000, 256, 1000, 0.005)
+    assert (c.budget.steps_per_epoch, c.budget.train_loops_per_epoch, c.sac.hidden, c.budget.start_steps) == (5000, 1000, (256, 256), 1000)
+    assert c.num_epochs == 600 and c.budget.eval_episodes == 10 and c.ccp.absorbing_success
 
 
 def test_eta_vectors_and_grid_order():
@@ -64,10 +64,10 @@ def test_eta_vectors_and_grid_order():
 
 
 def test_cli_arguments_resolve():
-    c = config_from_args(Args(rooms=3, eta_per_agent=("0.1,1.0", "0.5,0.5"), seeds=2, preset="tiny"))
-    assert c.etas == ((0.1, 1.0), (0.5, 0.5)) and c.seeds == (0, 1) and c.grid_size == 4
-    assert config_from_args(Args(target_entropy=-0.5, preset="tiny")).target_entropy == -0.5
-    robot = config_from_args(Args(maze_reverse=True, maze_slide=False, preset="tiny"))
+    c = config_from_args(parse_args(["--rooms", "3", "--eta-per-agent", "0.1,1.0", "0.5,0.5", "--seeds", "2", "--preset", "tiny"]))
+    assert c.grid.etas == ((0.1, 1.0), (0.5, 0.5)) and c.grid.seeds == (0, 1) and c.grid_size == 4
+    assert config_from_args(parse_args(["--target-entropy", "-0.5", "--preset", "tiny"])).sac.target_entropy == -0.5
+    robot = config_from_args(parse_args(["--maze-reverse", "True", "--maze-slide", "False", "--preset", "tiny"]))
     from ccp_jax.envs import make_env
     assert (make_env(robot).geometry.reverse, make_env(robot).geometry.slide) == (True, False)
     assert (make_env(make_config("tiny")).geometry.reverse, make_env(make_config("tiny")).geometry.slide) == (False, True)
@@ -76,23 +76,23 @@ def test_cli_arguments_resolve():
     assert base.differing(other) == ["total_steps", "gamma", "normaliser"]  # declaration order
     assert base.differing(other, ignore=("total_steps",)) == ["gamma", "normaliser"] and base.differing(base) == []
     with pytest.raises(ConfigError, match="^eta_per_agent:"):
-        config_from_args(Args(rooms=3, eta_per_agent=("0.1;1.0",), preset="tiny"))
+        config_from_args(parse_args(["--rooms", "3", "--eta-per-agent", "0.1;1.0", "--preset", "tiny"]))
     with pytest.raises(ConfigError, match="^eta_per_agent:"):
-        config_from_args(Args(rooms=4, eta_per_agent=("0.1,1.0",), preset="tiny"))
+        config_from_args(parse_args(["--rooms", "4", "--eta-per-agent", "0.1,1.0", "--preset", "tiny"]))
     with pytest.raises(ConfigError, match="^eta_per_agent: ratio vector 0.1 has 1 value; 3 agents need 2 values"):
-        config_from_args(Args(rooms=3, eta_per_agent=("0.1", "0.5"), preset="tiny"))  # a space for a comma
-    assert config_from_args(Args(rooms=2, eta_per_agent=("0.1",), preset="tiny")).etas == ((0.1,),)
+        config_from_args(parse_args(["--rooms", "3", "--eta-per-agent", "0.1", "0.5", "--preset", "tiny"]))  # a space for a comma
+    assert config_from_args(parse_args(["--rooms", "2", "--eta-per-agent", "0.1", "--preset", "tiny"])).grid.etas == ((0.1,),)
     with pytest.raises(ConfigError, match="^rooms: --rooms sets the maze's number of rooms; env 'peg'"):
-        config_from_args(Args(env="peg", rooms=3, preset="tiny"))
-    assert config_from_args(Args(env="peg", preset="tiny")).num_stages == 2
+        config_from_args(parse_args(["--env", "peg", "--rooms", "3", "--preset", "tiny"]))
+    assert config_from_args(parse_args(["--env", "peg", "--preset", "tiny"])).num_stages == 2
     with pytest.raises(ConfigError, match="^eta: ratios must be distinct"):
-        config_from_args(Args(eta=("0.1", "0.10"), preset="tiny"))
+        config_from_args(parse_args(["--eta", "0.1", "0.10", "--preset", "tiny"]))
     with pytest.raises(ConfigError, match="^eta: ratios must be distinct"):
         make_config("tiny", rooms=3, etas=((0.1,), (0.1, 0.1)))  # the same per-agent vector
     with pytest.raises(ConfigError, match="^seeds:"):
-        config_from_args(Args(seeds=0, preset="tiny"))
+        config_from_args(parse_args(["--seeds", "0", "--preset", "tiny"]))
     with pytest.raises(ConfigError, match="^eta:"):
-        config_from_args(Args(eta=(0.1,), eta_per_agent=("0.1",), preset="tiny"))
+        config_from_args(parse_args(["--eta", "0.1", "--eta-per-agent", "0.1", "--preset", "tiny"]))
 
 
 def test_compile_cache_keeps_the_users_folder_else_uses_xdg_cache(tmp_path, monkeypatch):
@@ -116,13 +116,13 @@ def test_compile_cache_keeps_the_users_folder_else_uses_xdg_cache(tmp_path, monk
 def test_a_config_json_from_before_the_kinematics_fields_reads_as_the_robot_it_trained():
     """Runs of sessions 1-27 wrote no maze_reverse / maze_slide: they drove backwards and stopped at walls."""
     from ccp_jax.config import Config
-    old_maze = {k: v for k, v in make_config("tiny").to_dict().items() if k not in ("maze_reverse", "maze_slide")}
+    old_maze = {k: v for k, v in make_config("tiny").flat().items() if k not in ("maze_reverse", "maze_slide")}
     legacy = Config.from_dict(old_maze)
-    assert (legacy.maze_reverse, legacy.maze_slide) == (True, False)
+    assert (legacy.ablations.maze_reverse, legacy.ablations.maze_slide) == (True, False)
     assert legacy.differing(make_config("tiny")) == ["maze_reverse", "maze_slide"]  # so train --resume keeps them
     written = Config.from_dict(make_config("tiny").to_dict())  # a file that records them keeps its values
-    assert (written.maze_reverse, written.maze_slide) == (False, True)
-    old_peg = {k: v for k, v in make_config("tiny", env="peg").to_dict().items() if k not in ("maze_reverse", "maze_slide")}
+    assert (written.ablations.maze_reverse, written.ablations.maze_slide) == (False, True)
+    old_peg = {k: v for k, v in make_config("tiny", env="peg").flat().items() if k not in ("maze_reverse", "maze_slide")}
     assert Config.from_dict(old_peg) == make_config("tiny", env="peg")  # other envs have no kinematics to recall
 
 
@@ -142,11 +142,11 @@ def test_a_folder_without_a_readable_run_is_named_by_the_argument_that_gave_it(t
 
 
 def test_algorithms_without_cooperation_refuse_ratios():
-    assert config_from_args(Args(algo="naive", rooms=3, preset="tiny")).algo == "naive"  # no --eta: accepted
+    assert config_from_args(parse_args(["--algo", "naive", "--rooms", "3", "--preset", "tiny"])).algo == "naive"  # no --eta: accepted
     with pytest.raises(ConfigError, match="^eta: --algo naive trains every agent"):
-        config_from_args(Args(algo="naive", eta=("0.3",), preset="tiny"))  # one ratio: it would be ignored
+        config_from_args(parse_args(["--algo", "naive", "--eta", "0.3", "--preset", "tiny"]))  # one ratio: it would be ignored
     with pytest.raises(ConfigError, match="^eta: --algo sac trains every agent on its own critic alone"):
-        config_from_args(Args(algo="sac", eta=("0.1", "0.5"), preset="tiny"))
+        config_from_args(parse_args(["--algo", "sac", "--eta", "0.1", "0.5", "--preset", "tiny"]))
     with pytest.raises(ConfigError, match="^eta: --algo naive .* a grid of ratios would train identical runs"):
         make_config("tiny", algo="naive", etas=((0.1,), (0.5,)))
 
@@ -158,8 +158,87 @@ def test_a_resume_that_changes_a_field_names_it_even_where_the_saved_ratios_no_l
 
     saved = make_config("tiny", rooms=3, etas=((0.1, 0.5),))
     (tmp_path / "config.json").write_text(json.dumps(saved.to_dict()))
-    for args, field in ((Args(resume=tmp_path, rooms=4), "rooms"), (Args(resume=tmp_path, algo="naive"), "algo"),
-                        (Args(resume=tmp_path, env="peg"), "env")):
+    for argv, field in ((["--rooms", "4"], "rooms"), (["--algo", "naive"], "algo"), (["--env", "peg"], "env")):
         with pytest.raises(ConfigError, match=f"^{field}: the run in {tmp_path} was trained with"):
-            resume_config(args)
-    assert resume_config(Args(resume=tmp_path, total_steps=2 * saved.total_steps)).total_steps == 2 * saved.total_steps
+            resume_config(parse_args(["--resume", str(tmp_path)] + argv))
+    longer = ["--resume", str(tmp_path), "--total-steps", str(2 * saved.budget.total_steps)]
+    assert resume_config(parse_args(longer)).budget.total_steps == 2 * saved.budget.total_steps
+
+
+def _tupled(x):
+    return tuple(_tupled(v) for v in x) if isinstance(x, list) else x
+
+
+def test_every_committed_config_json_reads_with_its_own_values():
+    """Every config.json under experiments/results (each form ever written) migrates to the current form with the
+    values it holds; a setting it lacks takes its default, the maze's kinematics LEGACY_MAZE's robot."""
+    import json
+    from pathlib import Path
+
+    from ccp_jax.config import LEGACY_MAZE, SECTION_OF, Config
+
+    files = sorted((Path(__file__).parent.parent / "experiments" / "results").glob("**/config.json"))
+    assert len(files) > 100
+    defaults = Config().flat()
+    for path in files:
+        written = json.loads(path.read_text())
+        config = Config.from_dict(written)
+        flat = config.flat()
+        settings = {k: _tupled(v) for k, v in written.items() if k in SECTION_OF}
+        assert {k: flat[k] for k in settings} == settings, path
+        for name in set(SECTION_OF) - set(settings):
+            legacy = config.task.env == "maze" and name in LEGACY_MAZE
+            assert flat[name] == (LEGACY_MAZE[name] if legacy else defaults[name]), (path, name)
+        for name in ("num_stages", "num_agents", "num_epochs", "grid_size"):
+            assert getattr(config, name) == written[name], (path, name)
+        assert Config.from_dict(json.loads(json.dumps(config.to_dict()))) == config, path
+
+
+def test_config_json_round_trips_and_refuses_what_it_cannot_read():
+    import json
+
+    from ccp_jax.config import VERSION, Config, migrate
+
+    for config in (make_config("tiny"), make_config("paper", rooms=4, etas=((0.1, "auto", 0.5),), seeds=(3, 4)),
+                   make_config("tiny", env="peg", algo="naive"), make_config("tiny", algo="tp", primitives="/p")):
+        written = json.loads(json.dumps(config.to_dict()))
+        assert written["version"] == VERSION and written["tp"]["primitives"] == config.tp.primitives
+        assert Config.from_dict(written) == config and migrate(written) == migrate(migrate(written))
+        flat = json.loads(json.dumps({**config.flat(), "num_stages": config.num_stages}))  # the older form
+        assert Config.from_dict(flat) == config
+    with pytest.raises(ConfigError, match="^version:"):
+        Config.from_dict({**make_config("tiny").to_dict(), "version": VERSION + 1})
+    with pytest.raises(TypeError, match="no setting 'gama'"):
+        Config.from_dict({**make_config("tiny").to_dict(), "sac": {"gama": 0.9}})
+
+
+def test_settings_are_read_by_flat_name_and_kept_in_sections():
+    from ccp_jax.config import SECTION_OF, SECTIONS
+
+    c = make_config("tiny", actor_lr=1e-3, tp_lr=2e-4, normaliser="floor")
+    assert (c.sac.actor_lr, c.tp.tp_lr, c.ablations.normaliser) == (1e-3, 2e-4, "floor")
+    assert c.replace(gamma=0.9).sac.gamma == 0.9 and c.replace(gamma=0.9).replace(sac=c.sac) == c
+    assert list(c.flat()) == list(SECTION_OF) and set(SECTION_OF) - {"algo"} == {
+        f for section in SECTIONS.values() for f in section.__dataclass_fields__}
+    with pytest.raises(ConfigError, match="^gama: not a configuration field"):
+        c.replace(gama=0.9)
+
+
+def test_help_shows_the_core_flags_first_the_rest_by_section_and_docs_cli_md_is_it():
+    import importlib.util
+    from pathlib import Path
+
+    script = Path(__file__).parent.parent / "docs" / "make_cli.py"
+    spec = importlib.util.spec_from_file_location("make_cli", script)
+    make_cli = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(make_cli)
+    text = make_cli.help_text()
+    assert make_cli.PAGE.read_text() == make_cli.HEADER + text + "\n```\n", "stale: run python docs/make_cli.py"
+    boxes = [line.split(" options")[0].strip("╭─ ") for line in text.splitlines() if line.startswith("╭─")]
+    assert boxes == ["", "budget", "sac", "ccp", "tp", "ablations", "devices"]
+    first = text.split("budget options")[0]
+    for flag in ("--env", "--rooms", "--algo", "--eta ", "--eta-per-agent", "--seeds", "--first-seed", "--preset",
+                 "--total-steps", "--out", "--resume", "--checkpoint-every", "--progress", "--tensorboard",
+                 "--wandb-project", "--eta-auto-rule"):
+        assert flag in first, flag
+    assert first.count("│ --") <= 25

@@ -284,7 +284,7 @@ def test_train_cli_with_user_env(tmp_path):
     written = json.loads((out / "summary.json").read_text())
     assert written == json.loads(json.dumps(summary))
     config = json.loads((out / "config.json").read_text())
-    assert config["env"] == "user_env_module:make" and config["num_stages"] == 2
+    assert config["task"]["env"] == "user_env_module:make" and config["num_stages"] == 2
     assert (out / "metrics.jsonl").read_text().strip()
 
 

@@ -1,5 +1,4 @@
 """The experiment scripts' bookkeeping on hand-made run folders: tables, best ratio, resume rules, figures."""
-import dataclasses
 import json
 import subprocess
 import sys
@@ -26,10 +25,10 @@ def _fake_run(folder: Path, config, success_by_member: dict[int, list[float]]) -
     folder.mkdir(parents=True)
     outputs.write_json(folder / "config.json", config.to_dict())
     rows = []
-    for member, (eta, seed) in enumerate(config.grid):
+    for member, (eta, seed) in enumerate(config.members):
         for epoch, s in enumerate(success_by_member[member], start=1):
             rows.append(dict(member=member, seed=seed, eta=list(eta), algo=config.algo, epoch=epoch,
-                             env_steps=epoch * config.steps_per_epoch, success_rate=s, eval_return=10.0 * s,
+                             env_steps=epoch * config.budget.steps_per_epoch, success_rate=s, eval_return=10.0 * s,
                              stage_reached_mean=s * (config.num_stages - 1),  # a success ends in the last stage
                              stage_fraction=[1.0] + [s] * (config.num_stages - 1),
                              eval_end={"pocket": 1.0 - s},  # and a failure in the pocket
@@ -118,7 +117,7 @@ def test_merged_summary_refuses_to_pool_a_member_of_two_different_experiments(ma
     with pytest.raises(ValueError, match="seed 0 but differ in normaliser"):
         common.merged_summary([csac, floor])
     longer = maze2_runs / "maze2" / "csac_longer"  # grid and budget may differ: the first folder's member counts
-    _fake_run(longer, scale.config("maze2", "csac", etas=[(0.1,)], total_steps=2 * scale.config("maze2", "csac").total_steps),
+    _fake_run(longer, scale.config("maze2", "csac", etas=[(0.1,)], total_steps=2 * scale.config("maze2", "csac").budget.total_steps),
               {0: [1] * 6, 1: [1] * 6})
     members = common.merged_summary([csac, longer])["members"]
     assert len(members) == 4 and all(m["run"] == str(csac) for m in members)
@@ -137,7 +136,7 @@ def test_run_grid_skips_a_finished_run_and_refuses_another_config(maze2_runs):
 
 def test_independent_ratio_report_names_the_best_pair(tmp_path):
     config = independent_ratios.pairs_config("smoke")
-    assert [eta for eta, _ in config.grid] == [(0.1, 0.1, 1.0), (0.1, 1.0, 1.0), (1.0, 0.1, 1.0), (1.0, 1.0, 1.0)]
+    assert [eta for eta, _ in config.members] == [(0.1, 0.1, 1.0), (0.1, 1.0, 1.0), (1.0, 0.1, 1.0), (1.0, 1.0, 1.0)]
     folder = tmp_path / "pairs"
     _fake_run(folder, config, {0: [0, 0], 1: [1, 1], 2: [0, 1], 3: [0, 0]})
     cells = independent_ratios.plot.ratio_cells([folder])
@@ -222,14 +221,14 @@ def test_ramp_rises_along_the_chain_and_is_trained_on_the_scales_and_the_fresh_s
     eta_auto.main(eta_auto.Args(scale="smoke", domains=("maze3",), normalisers=(), out=maze2_runs, sweep=False,
                                 ramp=(0.1, 0.5)))
     [(config, out)] = calls
-    assert out == maze2_runs / "maze3" / "csac_ramp" and config.etas == ((0.1, 0.5),) and config.seeds == (0, 1)
+    assert out == maze2_runs / "maze3" / "csac_ramp" and config.grid.etas == ((0.1, 0.5),) and config.grid.seeds == (0, 1)
     calls.clear()
     eta_auto.main(eta_auto.Args(scale="smoke", domains=("maze2",), normalisers=(), out=maze2_runs, sweep=False,
                                 ramp=(0.2, 0.5), fresh_seeds=2))
     (ramp, ramp_dir), (_, fresh_dir), (ramp_fresh, ramp_fresh_dir) = calls
     assert [ramp_dir.name, fresh_dir.name, ramp_fresh_dir.name] == ["csac_ramp", "csac_fresh_seeds",
                                                                      "csac_ramp_fresh_seeds"]
-    assert ramp.etas == ramp_fresh.etas == ((0.2,),) and ramp_fresh.seeds == (2, 3)
+    assert ramp.grid.etas == ramp_fresh.grid.etas == ((0.2,),) and ramp_fresh.grid.seeds == (2, 3)
     _fake_run(ramp_dir, ramp, {0: [1, 1], 1: [0, 1]})
     _fake_run(ramp_fresh_dir, ramp_fresh, {0: [0, 0], 1: [0, 1]})
     rows = eta_auto.domain_rows(maze2_runs, "maze2")
@@ -250,7 +249,7 @@ def test_eta_auto_trains_the_sweep_only_if_asked(tmp_path, monkeypatch, sweep):
 
     calls = []
     monkeypatch.setattr(eta_auto, "train_domain", lambda scale, domain, algos, out: calls.append(("sweep", domain)))
-    monkeypatch.setattr(eta_auto, "run_grid", lambda config, out: calls.append((config.normaliser, out.name)))
+    monkeypatch.setattr(eta_auto, "run_grid", lambda config, out: calls.append((config.ablations.normaliser, out.name)))
     eta_auto.main(eta_auto.Args(scale="smoke", domains=("maze2",), normalisers=("floor",), out=tmp_path, sweep=sweep))
     assert calls == [("sweep", "maze2")] * sweep + [("floor", "csac_auto_floor")]
 
@@ -265,7 +264,7 @@ def test_fresh_seeds_train_the_best_ratio_and_auto_on_new_seeds_and_add_their_ro
                                 fresh_seeds=3))
     [(config, out)] = calls
     assert out == maze2_runs / "maze2" / "csac_fresh_seeds"
-    assert config.etas == ((0.1,), ("auto",)) and config.seeds == (2, 3, 4)
+    assert config.grid.etas == ((0.1,), ("auto",)) and config.grid.seeds == (2, 3, 4)
     _fake_run(out, config, {0: [1, 1], 1: [0, 0], 2: [0, 1], 3: [0, 0], 4: [0, 0], 5: [1, 1]})
     rows = eta_auto.domain_rows(maze2_runs, "maze2")
     assert rows[-2:] == ["| maze2 | best swept η = 0.1, fresh seeds 2–4 | 0.50 ± 0.41 | 1.00 0.00 0.50 | 300 (2/3 seeds) |",
@@ -285,7 +284,7 @@ def test_raw_sum_trains_none_at_eta_half_on_the_scales_and_the_fresh_seeds_and_a
     assert [raw_dir.name, fresh_dir.name, raw_fresh_dir.name] == ["csac_raw_sum", "csac_fresh_seeds",
                                                                    "csac_raw_sum_fresh_seeds"]
     for config, seeds in ((raw, (0, 1)), (raw_fresh, (2, 3, 4))):
-        assert config.etas == ((0.5,),) and config.normaliser == "none" and config.seeds == seeds
+        assert config.grid.etas == ((0.5,),) and config.ablations.normaliser == "none" and config.grid.seeds == seeds
     assert raw_fresh.differing(raw) == ["seeds"]  # the same experiment on other seeds
     _fake_run(raw_dir, raw, {0: [1, 1], 1: [0, 1]})
     _fake_run(raw_fresh_dir, raw_fresh, {0: [0, 0], 1: [0, 1], 2: [1, 1]})
@@ -326,15 +325,15 @@ def test_table1_etas_narrow_the_csac_sweep_and_bad_ratios_name_the_field(tmp_pat
     monkeypatch.setattr(table1, "run_grid", lambda config, folder, **_: grids.append((config, folder)))
     table1.train_domain("smoke", "maze4", ("csac", "sac"), tmp_path, etas=("0.9", "auto"))
     (csac, csac_dir), (sac, _) = grids
-    assert csac.etas == ((0.9,), ("auto",)) and csac_dir == tmp_path / "maze4" / "csac_etas_0.9-auto"
-    assert sac.etas == ((1.0,),)  # only CSAC sweeps ratios
+    assert csac.grid.etas == ((0.9,), ("auto",)) and csac_dir == tmp_path / "maze4" / "csac_etas_0.9-auto"
+    assert sac.grid.etas == ((1.0,),)  # only CSAC sweeps ratios
     table1.train_domain("smoke", "maze4", ("csac",), tmp_path, etas=("0.1", "auto"))  # the scale's own set
     assert grids[-1][1] == tmp_path / "maze4" / "csac"
     # Without --etas, only the ratios no finished run holds for every seed are trained.
     scale = common.SCALES["smoke"]
     _fake_run(tmp_path / "maze3" / "csac_etas_0.1", scale.config("maze3", "csac", etas=[(0.1,)]), {0: [0], 1: [1]})
     table1.train_domain("smoke", "maze3", ("csac",), tmp_path)
-    assert grids[-1][0].etas == (("auto",),) and grids[-1][1] == tmp_path / "maze3" / "csac_etas_auto"
+    assert grids[-1][0].grid.etas == (("auto",),) and grids[-1][1] == tmp_path / "maze3" / "csac_etas_auto"
     _fake_run(grids[-1][1], grids[-1][0], {0: [0], 1: [1]})
     calls = len(grids)
     table1.train_domain("smoke", "maze3", ("csac",), tmp_path)
@@ -351,10 +350,10 @@ def test_paper_projection_builds_table1s_grids_and_sums_the_sweeps():
 
     progs = dict(pp.programs(pp.Args(scale="paper", baselines=True), "maze4"))
     assert progs["csac grid"].grid_size == 10 * 5  # the nine paper ratios and auto, 5 seeds: table1.py's sweep
-    assert progs["csac grid"].hidden == (256, 256) and progs["csac grid"].num_agents == 4
+    assert progs["csac grid"].sac.hidden == (256, 256) and progs["csac grid"].num_agents == 4
     assert progs["csac single"].grid_size == 1
     assert progs["sac"].grid_size == progs["naive"].grid_size == 5
-    assert progs["csac grid"].total_steps // progs["csac grid"].steps_per_epoch == 600
+    assert progs["csac grid"].budget.total_steps // progs["csac grid"].budget.steps_per_epoch == 600
     assert [name for name, _ in pp.programs(pp.Args(scale="paper", grid=False), "peg")] == ["csac single"]
 
     def row(program, grid, epoch_s, projected_s):
@@ -371,7 +370,7 @@ def test_paper_projection_builds_table1s_grids_and_sums_the_sweeps():
 
 def test_compare_pools_folders_per_variant_and_tests_each_row_against_the_first(tmp_path):
     scale = common.SCALES["smoke"]
-    steps = scale.config("maze2", "csac").steps_per_epoch
+    steps = scale.config("maze2", "csac").budget.steps_per_epoch
     a = scale.config("maze2", "csac", etas=[(0.1,)], seeds=2)
     _fake_run(tmp_path / "a", a, {0: [0, 1, 1], 1: [1, 1, 1]})
     _fake_run(tmp_path / "a2", scale.config("maze2", "csac", etas=[(0.1,)], seeds=2, first_seed=2),
@@ -406,7 +405,7 @@ def test_compare_pools_folders_per_variant_and_tests_each_row_against_the_first(
 def test_compare_reads_a_run_still_training_from_its_metrics_so_far(tmp_path):
     """No summary.json yet and a last row half written: the rows logged so far count, and the table says so."""
     scale = common.SCALES["smoke"]
-    steps = scale.config("maze2", "csac").steps_per_epoch
+    steps = scale.config("maze2", "csac").budget.steps_per_epoch
     config = scale.config("maze2", "csac", etas=[(0.1,)], seeds=2, total_steps=10 * steps)
     _fake_run(tmp_path / "r", config, {0: [0, 1, 1], 1: [0, 0, 1]})
     (tmp_path / "r" / "summary.json").unlink()

@@ -59,13 +59,13 @@ def test_critic_terms_use_pi_n_and_alpha_n_for_both_critics(csac):
     k_next = jax.random.split(key, (2, 2))[0, 0]
     b0 = jax.tree.map(lambda x: x[0], batch)
     mean, log_std = nets.actor.apply(_agent(agents.actor, 0), b0.next_obs)
-    a_next, logp_next = sample_action(mean, log_std, k_next, config.tanh_log_prob)
+    a_next, logp_next = sample_action(mean, log_std, k_next, config.ablations.tanh_log_prob)
     alpha0 = 0.5
     expected = 0.0
     for j in (0, 1):  # j = n and j = n + 1, both with π_0's next action and α_0
         q_next = jnp.min(nets.critic.apply(_agent(agents.target_critic, j), b0.next_obs, a_next), 0)
         y = losses.soft_target(b0.rewards[:, j], q_next, logp_next, alpha0, b0.terminal, b0.completed[:, j],
-                               config.gamma, 1.0 / (1.0 - config.gamma))
+                               config.sac.gamma, 1.0 / (1.0 - config.sac.gamma))
         expected += losses.twin_q_loss(nets.critic.apply(_agent(agents.critic, j), b0.obs, b0.action), y)
     assert float(metrics.q_loss[0]) == pytest.approx(float(expected), rel=1e-4)
     np.testing.assert_allclose(metrics.alpha, [0.5, 2.0], rtol=1e-6)
@@ -80,9 +80,9 @@ def test_acting_rule_bootstraps_with_the_successor_where_s_next_entered_its_stag
     _, metrics = update(agents, batch, jnp.array([0.3, 1.0]), jnp.array([True, True]), key)
     k_next = jax.random.split(key, (2, 2))[0, 0]
     b0 = jax.tree.map(lambda x: x[0], batch)
-    own = sample_action(*nets.actor.apply(_agent(agents.actor, 0), b0.next_obs), k_next, config.tanh_log_prob)
+    own = sample_action(*nets.actor.apply(_agent(agents.actor, 0), b0.next_obs), k_next, config.ablations.tanh_log_prob)
     succ = sample_action(*nets.actor.apply(_agent(agents.actor, 1), b0.next_obs), jax.random.fold_in(k_next, 1),
-                         config.tanh_log_prob)
+                         config.ablations.tanh_log_prob)
     crossed = b0.next_stage > 0  # the first 3 transitions of agent 0's batch entered stage 1
     assert crossed.sum() == 3
     a_next = jnp.where(crossed[:, None], succ[0], own[0])
@@ -92,7 +92,7 @@ def test_acting_rule_bootstraps_with_the_successor_where_s_next_entered_its_stag
     for j in (0, 1):
         q_next = jnp.min(nets.critic.apply(_agent(agents.target_critic, j), b0.next_obs, a_next), 0)
         y = losses.soft_target(b0.rewards[:, j], q_next, logp_next, alpha, b0.terminal, b0.completed[:, j],
-                               config.gamma, 1.0 / (1.0 - config.gamma))
+                               config.sac.gamma, 1.0 / (1.0 - config.sac.gamma))
         expected += losses.twin_q_loss(nets.critic.apply(_agent(agents.critic, j), b0.obs, b0.action), y)
     assert float(metrics.q_loss[0]) == pytest.approx(float(expected), rel=1e-4)
     # The paper's rule gives a different loss on the same batch.
@@ -180,7 +180,7 @@ def test_running_bounds_and_auto_eta_against_hand_values():
     k_pi = jax.random.split(key, (2, 2))[0, 1]
     b0 = jax.tree.map(lambda x: x[0], batch)
     mean, log_std = nets.actor.apply(_agent(agents.actor, 0), b0.obs)
-    act, _ = sample_action(mean, log_std, k_pi, config.tanh_log_prob)
+    act, _ = sample_action(mean, log_std, k_pi, config.ablations.tanh_log_prob)
     q = [jnp.min(nets.critic.apply(_agent(agents.critic, j), b0.obs, act), 0) for j in (0, 1)]
     lo = np.array([0.1 * float(x.min()) for x in q])  # 0 + 0.1 (min − 0)
     hi = np.array([20.0 + 0.1 * (float(x.max()) - 20.0) for x in q])
@@ -209,7 +209,7 @@ def test_no_normaliser_is_the_sac_actor_loss_on_the_cooperative_reward(coop_scal
     _, metrics = jax.jit(learner.update)(agents, batch, eta, jnp.array([True, True]), key)
     b0 = jax.tree.map(lambda x: x[0], batch)
     mean, log_std = nets.actor.apply(_agent(agents.actor, 0), b0.obs)
-    act, logp = sample_action(mean, log_std, jax.random.split(key, (2, 2))[0, 1], config.tanh_log_prob)
+    act, logp = sample_action(mean, log_std, jax.random.split(key, (2, 2))[0, 1], config.ablations.tanh_log_prob)
     q = [jnp.min(nets.critic.apply(_agent(agents.critic, j), b0.obs, act), 0) for j in (0, 1)]
     alpha = float(jnp.exp(agents.log_alpha[0]))
     hand = float(jnp.mean(alpha * logp - 0.3 * q[0] - 0.7 * q[1]))

@@ -137,7 +137,7 @@ def test_load_curves_groups_members_by_algo_and_eta(run_dir, config):
     (group, series), = groups.items()
     assert group == ("maze-2", "csac", (0.1, 1.0))
     assert len(series) == config.grid_size > 1
-    steps = np.arange(1, config.num_epochs + 1) * config.steps_per_epoch
+    steps = np.arange(1, config.num_epochs + 1) * config.budget.steps_per_epoch
     for s, v in series:
         np.testing.assert_array_equal(s, steps)
         assert v.shape == steps.shape
@@ -148,7 +148,8 @@ def test_load_curves_refuses_to_pool_a_seed_of_two_different_experiments(run_dir
 
     other = tmp_path / "floor"
     shutil.copytree(run_dir, other)
-    config = json.loads((other / "config.json").read_text())
+    saved = Config.from_dict(json.loads((other / "config.json").read_text()))
+    config = {**saved.flat(), "grid_size": saved.grid_size}  # written in the flat form of older runs
     (other / "config.json").write_text(json.dumps({**config, "total_steps": 10 * config["total_steps"]}))
     assert len(plot.load_curves([run_dir, other])[("maze-2", "csac", (0.1, 1.0))]) == config["grid_size"]  # resumed longer
     older = {k: v for k, v in config.items() if k != "normaliser"}  # a run from before the field existed
@@ -208,7 +209,7 @@ def test_evaluate_cli_reevaluates_every_member_from_the_checkpoint(run_dir, conf
     for r in rows:
         assert r["episodes"] == 6 and not r["stochastic"] and len(r["stage_fraction"]) == config.num_stages
         assert r["stage_fraction"][0] == 1.0 and 0.0 <= r["success_rate"] <= r["stage_fraction"][-1] <= 1.0
-        assert set(r["eval_end"]) == {"pocket"} and 0 < r["eval_episode_length"] <= config.max_episode_steps
+        assert set(r["eval_end"]) == {"pocket"} and 0 < r["eval_episode_length"] <= config.task.max_episode_steps
     last = config.num_epochs  # the latest checkpoint is the default
     assert evaluate.evaluate_run(run_dir, episodes=6, epoch=last) == rows
     noisy = evaluate.evaluate_run(run_dir, episodes=6, stochastic=True)

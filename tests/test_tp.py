@@ -93,8 +93,8 @@ def _line_config(**overrides):
 
 def _hand_set_transition(config, env):
     """A transition policy that always moves right at full speed and never chooses to terminate."""
-    nets = TPNets(policy=TransitionPolicy(config.tp_hidden, 1), value=Value(config.tp_hidden),
-                  proximity=Proximity(config.tp_prox_hidden), primitives=None)
+    nets = TPNets(policy=TransitionPolicy(config.tp.tp_hidden, 1), value=Value(config.tp.tp_hidden),
+                  proximity=Proximity(config.tp.tp_prox_hidden), primitives=None)
     params = nets.policy.init(jax.random.PRNGKey(0), jnp.zeros((env.observation_size,)))
     params = jax.tree.map(jnp.zeros_like, params)
     head = params["params"]["TanhMLP_0"]["Dense_2"]
@@ -156,7 +156,7 @@ def test_rollout_labels_a_hand_made_transition(succeeds):
     empty = buffer_init(1, 64, env.observation_size)
     env_state = jax.vmap(env.reset)(jax.random.split(jax.random.PRNGKey(3), 1))
     x0 = float(env_state.obs[0, 0])
-    _, ctrl, data, samples, stats = rollout(params, env_state, control_init(1, config.tp_max_steps + 1, 3),
+    _, ctrl, data, samples, stats = rollout(params, env_state, control_init(1, config.tp.tp_max_steps + 1, 3),
                                             ProximityData(empty, empty, empty), jax.random.PRNGKey(4))
     prim_step = 0.25 * np.tanh(5.0)  # the scripted primitive's deterministic step; the transition's is 0.25
     first_in_stage_1 = x0 + prim_step * np.ceil((1.0 - x0) / prim_step)  # where primitive 0 hands over
@@ -214,13 +214,13 @@ def test_transition_policy_learns_the_hand_over_state(learned):
         p = trainer.networks.proximity.apply(params, normalise(norm, obs))
         assert float(p[1]) > float(p[0]) + 0.2, p
     # Env steps are counted per env step, primitive and transition alike.
-    np.testing.assert_array_equal(history[-1].env_steps, [LEARN.total_steps] * LEARN.grid_size)
+    np.testing.assert_array_equal(history[-1].env_steps, [LEARN.budget.total_steps] * LEARN.grid_size)
 
 
 def test_grid_member_equals_the_run_alone(learned):
     """Seeds are a vmapped axis: member 1 of the grid trains exactly as seed 1 alone."""
     _, _, history = learned
-    alone = LEARN.replace(seeds=(1,), total_steps=2 * LEARN.steps_per_epoch)
+    alone = LEARN.replace(seeds=(1,), total_steps=2 * LEARN.budget.steps_per_epoch)
     env = Line(2, 40)
     trainer = GridTrainer(alone, env, trainer=make_tp_train(alone, env, scripted([0.0, 1.5])))
     eta, seed = alone.grid_arrays()
@@ -244,8 +244,8 @@ def test_cli_runs_tp_and_writes_the_contract_files(primitives_run, tmp_path):
     summary = main(["--preset", "tiny", "--algo", "tp", "--primitives", str(primitives_run), "--seeds", "2",
                     "--out", str(out), "--no-progress", "--no-tensorboard"])
     config = json.loads((out / "config.json").read_text())
-    assert config["algo"] == "tp" and config["primitives"] == str(primitives_run.resolve())
-    assert config["tp_max_steps"] == 10 and config["seeds"] == [0, 1]
+    assert config["algo"] == "tp" and config["tp"]["primitives"] == str(primitives_run.resolve())
+    assert config["tp"]["tp_max_steps"] == 10 and config["grid"]["seeds"] == [0, 1]
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) == 2 * config["num_epochs"]
     for key in ("member", "seed", "epoch", "env_steps", "success_rate", "eval_return", "stage_reached_mean",
@@ -308,4 +308,4 @@ def test_tp_config_round_trips():
     with pytest.raises(ConfigError, match="^tp_delta:"):
         config.replace(tp_delta=1.0)
     c = config_from_args(Args(preset="tiny"))
-    assert c.algo == "csac" and c.primitives is None
+    assert c.algo == "csac" and c.tp.primitives is None

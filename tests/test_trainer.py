@@ -88,7 +88,7 @@ def test_epoch_shapes_and_dtypes(grid_run):
     chex.assert_shape([m.eval.success_rate, m.eval.eval_return, m.env_steps], (g,))
     chex.assert_shape([m.train.q_loss, m.train.pi_loss, m.train.alpha, m.train.eta_star, m.buffer_size], (g, n))
     chex.assert_shape([m.eval.stage_fraction, m.train_stage_fraction], (g, 2))
-    chex.assert_shape(state.buffer.data.obs, (g, n, GRID.buffer_size, 24))
+    chex.assert_shape(state.buffer.data.obs, (g, n, GRID.sac.buffer_size, 24))
     assert state.buffer.data.obs.dtype == np.float32 and m.buffer_size.dtype == np.int32
     np.testing.assert_array_equal(m.env_steps, [400] * g)
     # Every collected step went to exactly one agent's buffer.
@@ -126,7 +126,7 @@ def test_grid_member_equals_the_run_alone(grid_run):
     alone = GRID.replace(etas=((0.9,),), seeds=(1,))
     solo_state, solo_history = _train(alone, make_grid_train(alone, make_env(alone)), 2)
     member = 3  # (eta 0.9, seed 1): ratios outermost
-    assert GRID.grid[member] == alone.grid[0]
+    assert GRID.members[member] == alone.members[0]
     for a, b in zip(jax.tree.leaves(state.agents), jax.tree.leaves(solo_state.agents)):
         np.testing.assert_allclose(a[member], b[0], rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(history[-1].train.q_loss[member], solo_history[-1].train.q_loss[0], rtol=1e-4)
@@ -181,7 +181,7 @@ def test_cli_writes_the_contract_files(tmp_path):
     summary = main(["--preset", "tiny", "--rooms", "3", "--eta-per-agent", "0.1,1.0", "--seeds", "2",
                     "--out", str(out), "--no-progress"])
     config = json.loads((out / "config.json").read_text())
-    assert config["etas"] == [[0.1, 1.0]] and config["seeds"] == [0, 1] and config["num_agents"] == 3
+    assert config["grid"]["etas"] == [[0.1, 1.0]] and config["grid"]["seeds"] == [0, 1] and config["num_agents"] == 3
     rows = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
     assert len(rows) == 2 * config["num_epochs"]
     for key in ("member", "seed", "eta", "epoch", "env_steps", "success_rate", "eval_return",
@@ -192,7 +192,7 @@ def test_cli_writes_the_contract_files(tmp_path):
     saved = json.loads((out / "summary.json").read_text())
     assert [m["seed"] for m in saved["members"]] == [0, 1] == [m["seed"] for m in summary["members"]]
     assert all(0.0 <= m["final_success"] <= 1.0 for m in saved["members"])
-    assert saved["q_bound"] == pytest.approx(1 / (1 - config["gamma"]))
+    assert saved["q_bound"] == pytest.approx(1 / (1 - config["sac"]["gamma"]))
     for m in saved["members"]:
         mine = np.array([r["q_max"] for r in rows if r["member"] == m["member"]])  # [epochs, agents]
         np.testing.assert_allclose(m["q_peak"], mine.max(0))
@@ -227,25 +227,23 @@ def test_summary_flags_a_critic_above_ten_times_the_value_its_rewards_allow():
 
 
 def test_every_hyperparameter_reaches_the_config_from_the_cli():
-    import tyro
+    from ccp_jax.train import config_from_args, parse_args
 
-    from ccp_jax.train import Args, config_from_args
-
-    args = tyro.cli(Args, args=["--preset", "tiny", "--tau", "0.01", "--actor-lr", "1e-3", "--critic-lr", "2e-3",
-                                "--alpha-lr", "3e-3", "--start-steps", "50", "--normalise-last", "True",
-                                "--eta-auto-range", "0.2", "0.8", "--next-action", "acting", "--normaliser", "ema",
-                                "--train-cycles-per-epoch", "10", "--network-init", "rlkit", "--initial-alpha", "0.05",
-                                "--coop-scale", "own", "--eta-auto-next-weight", "4"])
+    args = parse_args(["--preset", "tiny", "--tau", "0.01", "--actor-lr", "1e-3", "--critic-lr", "2e-3",
+                       "--alpha-lr", "3e-3", "--start-steps", "50", "--normalise-last", "True",
+                       "--eta-auto-range", "0.2", "0.8", "--next-action", "acting", "--normaliser", "ema",
+                       "--train-cycles-per-epoch", "10", "--network-init", "rlkit", "--initial-alpha", "0.05",
+                       "--coop-scale", "own", "--eta-auto-next-weight", "4"])
     config = config_from_args(args)
-    assert (config.tau, config.actor_lr, config.critic_lr, config.alpha_lr) == (0.01, 1e-3, 2e-3, 3e-3)
-    assert (config.start_steps, config.normalise_last, config.eta_auto_range) == (50, True, (0.2, 0.8))
-    assert (config.next_action, config.normaliser, config.train_cycles_per_epoch) == ("acting", "ema", 10)
-    assert (config.network_init, config.initial_alpha, config.coop_scale) == ("rlkit", 0.05, "own")
-    assert config.eta_auto_next_weight == 4.0
+    assert (config.sac.tau, config.sac.actor_lr, config.sac.critic_lr, config.sac.alpha_lr) == (0.01, 1e-3, 2e-3, 3e-3)
+    assert (config.budget.start_steps, config.ablations.normalise_last, config.ccp.eta_auto_range) == (50, True, (0.2, 0.8))
+    assert (config.ablations.next_action, config.ablations.normaliser, config.ablations.train_cycles_per_epoch) == ("acting", "ema", 10)
+    assert (config.ablations.network_init, config.sac.initial_alpha, config.ablations.coop_scale) == ("rlkit", 0.05, "own")
+    assert config.ablations.eta_auto_next_weight == 4.0
     with pytest.raises(ConfigError, match="^eta_auto_next_weight:"):
-        config_from_args(tyro.cli(Args, args=["--preset", "tiny", "--eta-auto-next-weight", "0"]))
+        config_from_args(parse_args(["--preset", "tiny", "--eta-auto-next-weight", "0"]))
     with pytest.raises(ConfigError, match="^eta_auto_range:"):
-        config_from_args(tyro.cli(Args, args=["--preset", "tiny", "--eta-auto-range", "0.9", "0.1"]))
+        config_from_args(parse_args(["--preset", "tiny", "--eta-auto-range", "0.9", "0.1"]))
 
 
 @pytest.mark.parametrize("algo", ["naive", "sac"])
@@ -310,7 +308,7 @@ def test_env_is_traced_once_per_call_kind_on_one_device():
             return super().step(state, action)
 
     config = make_config("tiny", rooms=2)
-    trainer = make_grid_train(config, Counting(rooms=2, episode_length=config.max_episode_steps),
+    trainer = make_grid_train(config, Counting(rooms=2, episode_length=config.task.max_episode_steps),
                               devices=jax.devices()[:1])
     eta, seeds = config.grid_arrays()
     state = trainer.abstract_state(seeds)
@@ -378,7 +376,7 @@ def test_the_floor_step_reaches_the_outcome_rule(monkeypatch):
     seen, real = [], eta_module.outcome_eta
     monkeypatch.setattr(eta_module, "outcome_eta", lambda *a, **k: seen.append(a[8]) or real(*a, **k))
     config = make_config("tiny", rooms=3, etas=(("auto",),), eta_auto_rule="trusted", eta_auto_floor_step=0.25)
-    run = trainer_module.make_train(config, Line(3, config.max_episode_steps))
+    run = trainer_module.make_train(config, Line(3, config.task.max_episode_steps))
     jax.eval_shape(run.train_step, jax.eval_shape(run.init, 0), jnp.full((3,), jnp.nan))
     assert seen == [0.25]
 
@@ -411,7 +409,7 @@ def test_outcome_rule_trains_auto_members_at_its_ratios_epoch_by_epoch(rule):
         successes = jnp.asarray(m.train_success[0] * m.train_episodes[0])
         gate = gate | successor_succeeded(stages, successes)
         expected.append(float(outcome_eta(jnp.full((2,), expected[-1]), stages, successes, 0.2,
-                                          config.eta_auto_range, rule=rule, gate=gate)[0]))
+                                          config.ccp.eta_auto_range, rule=rule, gate=gate)[0]))
     np.testing.assert_allclose(used[:, 0], expected[:3], rtol=1e-5)
     np.testing.assert_allclose(state.eta_auto[0, 0], expected[3], rtol=1e-5)
     np.testing.assert_array_equal(state.successor_succeeded[0], gate)
@@ -419,18 +417,16 @@ def test_outcome_rule_trains_auto_members_at_its_ratios_epoch_by_epoch(rule):
 
 
 def test_outcome_rule_fields_are_validated_and_reach_the_config_from_the_cli():
-    import tyro
+    from ccp_jax.train import config_from_args, parse_args
 
-    from ccp_jax.train import Args, config_from_args
-
-    config = config_from_args(tyro.cli(Args, args=["--preset", "tiny", "--eta", "auto", "--eta-auto-rule", "outcomes",
-                                                   "--eta-auto-rate", "0.1", "--eta-auto-up-rate", "0",
-                                                   "--eta-auto-floor-step", "0.25"]))
-    assert (config.eta_auto_rule, config.eta_auto_rate, config.eta_auto_up_rate) == ("outcomes", 0.1, 0.0)
-    assert config.eta_auto_floor_step == 0.25
+    config = config_from_args(parse_args(["--preset", "tiny", "--eta", "auto", "--eta-auto-rule", "outcomes",
+                                          "--eta-auto-rate", "0.1", "--eta-auto-up-rate", "0",
+                                          "--eta-auto-floor-step", "0.25"]))
+    assert (config.ccp.eta_auto_rule, config.ccp.eta_auto_rate, config.ablations.eta_auto_up_rate) == ("outcomes", 0.1, 0.0)
+    assert config.ablations.eta_auto_floor_step == 0.25
     with pytest.raises(ConfigError, match="^eta_auto_floor_step: bounds the outcome rules"):
         make_config("tiny", eta_auto_floor_step=0.25)  # the default rule, "ranges", has no floors
-    assert make_config("tiny").eta_auto_rule == "ranges"
+    assert make_config("tiny").ccp.eta_auto_rule == "ranges"
     for field, value in (("eta_auto_rule", "returns"), ("eta_auto_rate", 0.0), ("eta_auto_rate", 1.5),
                          ("eta_auto_rate", float("nan")), ("eta_auto_up_rate", -0.1), ("eta_auto_floor_step", -0.1),
                          ("eta_auto_floor_step", float("inf"))):

@@ -76,7 +76,7 @@ def make_ppo_update(config: Config, policy: TransitionPolicy, value: Value, tx: 
     them are skipped (params and optimiser state kept), so the number of
     updates follows the data while shapes stay static.
     """
-    mb, clip_eps = config.tp_minibatch, config.tp_clip
+    mb, clip_eps = config.tp.tp_minibatch, config.tp.tp_clip
 
     def loss_fn(params, stats: RunningNorm, batch: Samples, logp_old, adv, ret, w):
         obs = normalise(stats, batch.obs)
@@ -87,7 +87,7 @@ def make_ppo_update(config: Config, policy: TransitionPolicy, value: Value, tx: 
         entropy = gaussian_entropy(log_std) + categorical_entropy(logits)
         v_loss = (value.apply(params[1], obs) - ret) ** 2
         wmean = lambda x: (w * x).sum() / jnp.maximum(w.sum(), 1.0)
-        loss = wmean(pg) + config.tp_value_coef * wmean(v_loss) - config.tp_entropy_coef * wmean(entropy)
+        loss = wmean(pg) + config.tp.tp_value_coef * wmean(v_loss) - config.tp.tp_entropy_coef * wmean(entropy)
         return loss, PPOMetrics(wmean(pg), wmean(v_loss), wmean(entropy), wmean(logp_old - logp),
                                 wmean((jnp.abs(ratio - 1.0) > clip_eps).astype(jnp.float32)))
 
@@ -121,7 +121,7 @@ def make_ppo_update(config: Config, policy: TransitionPolicy, value: Value, tx: 
             return (params, opt_state), out
 
         (params, opt_state), (metrics, live) = jax.lax.scan(
-            epoch, (params, opt_state), jax.random.split(key, config.tp_ppo_epochs))
+            epoch, (params, opt_state), jax.random.split(key, config.tp.tp_ppo_epochs))
         live = live.astype(jnp.float32)
         metrics = jax.tree.map(lambda x: (x * live).sum() / jnp.maximum(live.sum(), 1.0), metrics)
         return params, opt_state, metrics

@@ -26,10 +26,10 @@ class Primitives(NamedTuple):
 
 def primitives_config(config: Config) -> Config:
     """The naive run's config, checked against `config` (same env and stages, one agent per stage)."""
-    if config.primitives is None:
+    if config.tp.primitives is None:
         raise ConfigError("primitives", "--algo tp needs frozen primitives: train them first with --algo naive "
                                         "(same env and rooms), then pass that run folder as --primitives DIR")
-    run_dir = Path(config.primitives)
+    run_dir = Path(config.tp.primitives)
     if not (run_dir / "config.json").exists():
         raise ConfigError("primitives", f"{run_dir} holds no run (no config.json); train the primitives with "
                                         "--algo naive --out DIR first")
@@ -39,24 +39,24 @@ def primitives_config(config: Config) -> Config:
         raise ConfigError("primitives", f"{run_dir / 'config.json'} is unreadable: {err}") from None
     if saved.algo != "naive":
         raise ConfigError("primitives", f"{run_dir} is a {saved.algo!r} run; primitives come from an --algo naive run")
-    if saved.env != config.env or saved.num_stages != config.num_stages:
-        raise ConfigError("primitives", f"{run_dir} was trained on {saved.env} with {saved.num_stages} stages; "
-                                        f"this run is {config.env} with {config.num_stages} stages")
+    if saved.task.env != config.task.env or saved.num_stages != config.num_stages:
+        raise ConfigError("primitives", f"{run_dir} was trained on {saved.task.env} with {saved.num_stages} stages; "
+                                        f"this run is {config.task.env} with {config.num_stages} stages")
     for name in ("maze_reverse", "maze_slide"):  # primitives trained on other kinematics would act on another robot
-        if getattr(saved, name) != getattr(config, name):
-            raise ConfigError(name, f"{run_dir} was trained with {name} = {getattr(saved, name)}, "
-                                    f"this run has {getattr(config, name)}")
-    if not 0 <= config.primitives_member < saved.grid_size:
+        if getattr(saved.ablations, name) != getattr(config.ablations, name):
+            raise ConfigError(name, f"{run_dir} was trained with {name} = {getattr(saved.ablations, name)}, "
+                                    f"this run has {getattr(config.ablations, name)}")
+    if not 0 <= config.tp.primitives_member < saved.grid_size:
         raise ConfigError("primitives_member", f"{run_dir} has members 0..{saved.grid_size - 1}, "
-                                               f"got {config.primitives_member}")
+                                               f"got {config.tp.primitives_member}")
     if not (run_dir / checkpoint.CHECKPOINT_DIR).is_dir():
         raise ConfigError("primitives", f"{run_dir} has no checkpoints/ (unfinished, or copied without them)")
     return saved
 
 
 def load_primitives(config: Config) -> Primitives:
-    """The actor parameters of member `config.primitives_member` of the naive run in `config.primitives`."""
+    """The actor parameters of member `config.tp.primitives_member` of the naive run in `config.tp.primitives`."""
     saved = primitives_config(config)
-    actor, actors = load_actors(config.primitives, saved)
-    params = jax.tree.map(lambda x: jax.device_get(x[config.primitives_member]), actors)
+    actor, actors = load_actors(config.tp.primitives, saved)
+    params = jax.tree.map(lambda x: jax.device_get(x[config.tp.primitives_member]), actors)
     return Primitives(actor=actor, params=params)

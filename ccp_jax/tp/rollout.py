@@ -103,7 +103,7 @@ def decide(config: Config, nets: TPNets, params: TPParams, state: State, in_tran
     else:
         raw = mean + jnp.exp(log_std) * jax.random.normal(k_act, mean.shape)
         chosen = jax.random.categorical(k_term, logits) == 1
-    forced = in_transition & (steps >= config.tp_max_steps)
+    forced = in_transition & (steps >= config.tp.tp_max_steps)
     term = in_transition & (chosen | forced)
     moving = in_transition & ~term
     prim = nets.primitives
@@ -135,10 +135,10 @@ class RolloutStats(NamedTuple):
 def make_rollout(config: Config, env: Env, nets: TPNets) -> Callable:
     """`rollout(params, env_state, control, data, key) -> (env_state, control, data, samples [T, E], stats)`.
 
-    `config.collect_iters` vectorised steps over `config.num_envs` envs with the
+    `config.collect_iters` vectorised steps over `config.budget.num_envs` envs with the
     stochastic transition policies; rewards use the current predictors.
     """
-    num_envs, num_k, max_len = config.num_envs, config.num_stages - 1, config.tp_max_steps + 1
+    num_envs, num_k, max_len = config.budget.num_envs, config.num_stages - 1, config.tp.tp_max_steps + 1
     v_step = jax.vmap(env.step)
 
     def one_step(params: TPParams, carry, key):
@@ -169,7 +169,7 @@ def make_rollout(config: Config, env: Env, nets: TPNets) -> Callable:
         has = pending_len > 0
         won = has & ((next_stage > pending_policy + 1) | success)
         lost = has & done & ~won
-        labels = proximity_targets(pending_len, won, max_len, config.tp_delta)
+        labels = proximity_targets(pending_len, won, max_len, config.tp.tp_delta)
         data = ProximityData(
             success=buffer_add(data.success, pending_obs, labels, pending_policy, jnp.where(won, pending_len, 0)),
             failure=buffer_add(data.failure, pending_obs, labels, pending_policy, jnp.where(lost, pending_len, 0)),
@@ -200,13 +200,14 @@ def make_rollout(config: Config, env: Env, nets: TPNets) -> Callable:
 
 
 def make_evaluate(config: Config, env: Env, nets: TPNets) -> Callable:
-    """`evaluate(params, key) -> (EvalMetrics, transition fraction)` over `config.eval_episodes` deterministic episodes.
+    """`evaluate(params, key) -> (EvalMetrics, transition fraction)` over `config.budget.eval_episodes` deterministic
+    episodes.
 
     Deterministic primitives, mean transition actions, terminate when the head
     prefers it. The second output is the fraction of env steps a transition
     policy took.
     """
-    episodes, num_stages = config.eval_episodes, config.num_stages
+    episodes, num_stages = config.budget.eval_episodes, config.num_stages
     v_step, v_reset = jax.vmap(env.step), jax.vmap(env.reset)
 
     def evaluate(params: TPParams, key: jax.Array):
@@ -215,7 +216,7 @@ def make_evaluate(config: Config, env: Env, nets: TPNets) -> Callable:
         mode = (jnp.zeros((episodes,), bool), jnp.zeros((episodes,), jnp.int32))
 
         def cond(carry):
-            return jnp.any(carry[0].done == 0) & (carry[-1] < config.max_episode_steps)
+            return jnp.any(carry[0].done == 0) & (carry[-1] < config.task.max_episode_steps)
 
         def body(carry):
             state, (in_tp, steps), ret, length, moved, t = carry
@@ -247,12 +248,12 @@ def make_initial_successes(config: Config, env: Env, primitives: Primitives) -> 
     steps, 200 k MJX steps per peg member, and two differently compiled MJX
     loops can drift apart: README, TP section.)
     """
-    episodes, num_stages = config.tp_init_episodes, config.num_stages
+    episodes, num_stages = config.tp.tp_init_episodes, config.num_stages
     v_step, v_reset = jax.vmap(env.step), jax.vmap(env.reset)
     big = jnp.iinfo(jnp.int32).max
 
     def initial(key: jax.Array) -> tuple[SegmentBuffer, jax.Array]:
-        horizon = config.max_episode_steps
+        horizon = config.task.max_episode_steps
         trace = (jnp.zeros((horizon, episodes, env.observation_size)), jnp.zeros((horizon, episodes), jnp.int32),
                  jnp.zeros((horizon, episodes), bool))  # obs, stage and liveness of every state
 
@@ -274,7 +275,7 @@ def make_initial_successes(config: Config, env: Env, primitives: Primitives) -> 
         start = jnp.where(here.any(0), jnp.argmax(here, 0), big)  # first step in each stage (big: never)
         last = horizon - 1 - jnp.argmax(here[::-1], 0)
         done_stage = (final.info["stage"][:, None] > jnp.arange(num_stages)) | (final.metrics["success"][:, None] > 0)
-        keep = jnp.where(done_stage, jnp.ceil(config.tp_init_fraction * (last - start + 1)), 0).astype(jnp.int32)
+        keep = jnp.where(done_stage, jnp.ceil(config.tp.tp_init_fraction * (last - start + 1)), 0).astype(jnp.int32)
 
         def store(buf, step):
             t, obs_t, stage, live = step
@@ -283,7 +284,7 @@ def make_initial_successes(config: Config, env: Env, primitives: Primitives) -> 
             return buffer_add(buf, obs_t[:, None], jnp.ones((episodes, 1)), jnp.maximum(stage - 1, 0),
                               take.astype(jnp.int32)), None
 
-        empty = buffer_init(num_stages - 1, config.tp_buffer_size, env.observation_size)
+        empty = buffer_init(num_stages - 1, config.tp.tp_buffer_size, env.observation_size)
         permanent, _ = jax.lax.scan(store, empty, (jnp.arange(horizon),) + trace)
         return permanent, lives.sum()
 

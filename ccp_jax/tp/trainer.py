@@ -90,14 +90,14 @@ def make_tp_train(config: Config, env: Env, primitives: Primitives) -> Trainer:
         raise ValueError(f"rooms: the env has {env.num_stages} stages but the config expects {config.num_stages}")
     obs_size, action_size, num_k = env.observation_size, env.action_size, config.num_stages - 1
     env = TracedOnce(env)  # reset and step are called in init, rollouts and evaluation: trace each once
-    nets = TPNets(policy=TransitionPolicy(config.tp_hidden, action_size), value=Value(config.tp_hidden),
-                  proximity=Proximity(config.tp_prox_hidden), primitives=primitives)
-    ppo_tx = optax.adam(config.tp_lr)
-    prox_tx = optax.chain(clip_each_by_norm(PROX_GRAD_CLIP), optax.adam(config.tp_prox_lr, b1=PROX_BETA1))
+    nets = TPNets(policy=TransitionPolicy(config.tp.tp_hidden, action_size), value=Value(config.tp.tp_hidden),
+                  proximity=Proximity(config.tp.tp_prox_hidden), primitives=primitives)
+    ppo_tx = optax.adam(config.tp.tp_lr)
+    prox_tx = optax.chain(clip_each_by_norm(PROX_GRAD_CLIP), optax.adam(config.tp.tp_prox_lr, b1=PROX_BETA1))
     rollout = make_rollout(config, env, nets)
     evaluate = make_evaluate(config, env, nets)
     initial = make_initial_successes(config, env, primitives)
-    predictor_update = make_predictor_update(nets.proximity, prox_tx, config.tp_prox_batch)
+    predictor_update = make_predictor_update(nets.proximity, prox_tx, config.tp.tp_prox_batch)
     ppo_update = make_ppo_update(config, nets.policy, nets.value, ppo_tx)
 
     def init(seed: jax.Array) -> TPState:
@@ -109,16 +109,16 @@ def make_tp_train(config: Config, env: Env, primitives: Primitives) -> Trainer:
         prox = jax.vmap(lambda k: nets.proximity.init(k, dummy))(jax.random.split(k_p, num_k))
         permanent, init_steps = initial(k_init)
         # The normalisers start from the permanent success states, the only states known before training.
-        valid = jnp.arange(config.tp_buffer_size)[None, :] < permanent.size[:, None]
+        valid = jnp.arange(config.tp.tp_buffer_size)[None, :] < permanent.size[:, None]
         norm = jax.vmap(norm_update, in_axes=(None, 0, 0))(norm_init(obs_size), permanent.obs,
                                                             valid.astype(jnp.float32))
-        empty = buffer_init(num_k, config.tp_buffer_size, obs_size)
+        empty = buffer_init(num_k, config.tp.tp_buffer_size, obs_size)
         agents = TransitionAgents(actor=actor, value=value, opt=jax.vmap(ppo_tx.init)((actor, value)), norm=norm)
         predictors = Predictors(params=prox, opt=jax.vmap(prox_tx.init)(prox),
                                 data=ProximityData(success=empty, failure=empty, permanent=permanent))
-        env_state = jax.vmap(env.reset)(jax.random.split(k_env, config.num_envs))
+        env_state = jax.vmap(env.reset)(jax.random.split(k_env, config.budget.num_envs))
         return TPState(agents=agents, predictors=predictors, env_state=env_state,
-                       control=control_init(config.num_envs, config.tp_max_steps + 1, obs_size), key=key,
+                       control=control_init(config.budget.num_envs, config.tp.tp_max_steps + 1, obs_size), key=key,
                        env_steps=jnp.int32(0), init_env_steps=init_steps, epoch=jnp.int32(0))
 
     def ppo_inputs(agents: TransitionAgents, samples, env_state: State, control: Control):
@@ -145,7 +145,7 @@ def make_tp_train(config: Config, env: Env, primitives: Primitives) -> Trainer:
         last_k = jnp.clip(env_state.info["stage"] - 1, 0, num_k - 1)
         last_value = per_policy(nets.value.apply, agents.value, norm, env_state.obs, last_k) * control.in_transition
         adv, ret = gae(samples.reward, value.reshape(samples.valid.shape), samples.end, samples.valid, last_value,
-                       config.tp_gamma, config.tp_gae_lambda)
+                       config.tp.tp_gamma, config.tp.tp_gae_lambda)
         return norm, flat, mine, logp_old, adv.reshape(-1), ret.reshape(-1)
 
     def train_step(state: TPState, eta: jax.Array) -> tuple[TPState, TPEpochMetrics]:
@@ -162,7 +162,7 @@ def make_tp_train(config: Config, env: Env, primitives: Primitives) -> Trainer:
             return (params, opt), metrics
 
         (prox_params, prox_opt), prox_metrics = jax.lax.scan(prox_step, (preds.params, preds.opt),
-                                                             jax.random.split(k_prox, config.tp_prox_updates))
+                                                             jax.random.split(k_prox, config.tp.tp_prox_updates))
         (actor, value_params), ppo_opt, ppo_metrics = jax.vmap(
             ppo_update, in_axes=(0, 0, 0, None, None, None, None, 0, 0))(
             (agents.actor, agents.value), agents.opt, norm, flat, logp_old, adv, ret, mine,
@@ -171,7 +171,7 @@ def make_tp_train(config: Config, env: Env, primitives: Primitives) -> Trainer:
         agents = TransitionAgents(actor=actor, value=value_params, opt=ppo_opt, norm=norm)
         preds = Predictors(params=prox_params, opt=prox_opt, data=data)
         eval_metrics, transition_fraction = evaluate(TPParams(actor, prox_params, norm), k_eval)
-        env_steps = state.env_steps + config.steps_per_epoch
+        env_steps = state.env_steps + config.budget.steps_per_epoch
         metrics = TPEpochMetrics(
             env_steps=env_steps, eval=eval_metrics, train_episodes=stats.episodes,
             train_success=per_episode(stats.successes, stats.episodes),
@@ -188,6 +188,6 @@ def make_tp_train(config: Config, env: Env, primitives: Primitives) -> Trainer:
 
 
 def make_tp_grid(config: Config, env: Env, devices=None, members_at_once: int | None = None) -> GridTrainer:
-    """The TP grid (seeds) as one compiled program; loads the frozen primitives of `config.primitives`."""
+    """The TP grid (seeds) as one compiled program; loads the frozen primitives of `config.tp.primitives`."""
     return GridTrainer(config, env, devices, trainer=make_tp_train(config, env, load_primitives(config)),
                        members_at_once=members_at_once)

@@ -96,7 +96,7 @@ def gib(x: float) -> str:
 def main(args: Args) -> dict:
     config = config_for(args)
     env = make_env(config)
-    n, g, cap = config.num_agents, config.grid_size, config.buffer_size
+    n, g, cap = config.num_agents, config.grid_size, config.sac.buffer_size
     obs, act = env.observation_size, env.action_size
     r = 1 if n == 1 else config.num_stages
     state = run_shapes(config)
@@ -105,7 +105,7 @@ def main(args: Args) -> dict:
     fields = transition_fields(state)
     per_transition = sum(fields.values())
     formula = 4 * (2 * obs + act + 2 + 2 * r)
-    print(f"Transition layout ({config.env}, {config.num_stages} stages, {config.algo}: N = {n} agents, R = {r} "
+    print(f"Transition layout ({config.task.env}, {config.num_stages} stages, {config.algo}: N = {n} agents, R = {r} "
           f"reward channels, obs {obs}, act {act}):")
     for name, b in fields.items():
         print(f"  {name:<10}{b:>5} B")
@@ -180,7 +180,7 @@ def main(args: Args) -> dict:
         fits = "".join(f"{'fits' if b <= args.usable * s * GB else '—':>8}" for s in args.gpus)
         print(f"{name:<44}{exact:>6}{gib(b):>7}{fits}   {change}")
     print(f"  * exact only while no agent receives more than {args.total_steps // n:,} transitions in a run "
-          f"(its buffer would overwrite data the paper's would keep); config.buffer_size is one capacity for all "
+          f"(its buffer would overwrite data the paper's would keep); config.sac.buffer_size is one capacity for all "
           f"agents, and the first agent usually receives the most.")
 
     result.update({"bytes_per_transition": per_transition, "formula": formula, "grid_bytes": total,

@@ -89,11 +89,11 @@ def measure(name: str, domain: str, config: Config, epochs: int) -> dict:
     setup_s = time.perf_counter() - t
     for _ in range(epochs):
         timed.epoch()
-    run_epochs = config.total_steps // config.steps_per_epoch
+    run_epochs = config.budget.total_steps // config.budget.steps_per_epoch
     # Setup = building, initialising, compiling, and the warm-up epochs TimedGrid ran: keep only the overhead.
     overhead_s = setup_s - (2 + bool(timed.retraced)) * timed.median
     row = dict(domain=domain, program=name, algo=config.algo, grid=config.grid_size, agents=config.num_agents,
-               hidden=list(config.hidden), buffer=config.buffer_size, epoch_s=timed.median,
+               hidden=list(config.sac.hidden), buffer=config.sac.buffer_size, epoch_s=timed.median,
                per_run_epoch_s=timed.median / config.grid_size, compile_s=timed.compile_s,
                overhead_s=overhead_s, run_epochs=run_epochs, projected_s=run_epochs * timed.median + overhead_s,
                peak_gb=peak_gb(), device=str(jax.devices()[0].device_kind), platform=jax.devices()[0].platform,

@@ -135,7 +135,7 @@ def our_updates(args: Args, width: int, n_agents: int):
     """(callable running `loops` joint updates of the grid, returning seconds per joint update;
     XLA's FLOPs of one joint update of the grid)."""
     config = our_config(args, width, n_agents)
-    env = Maze(rooms=config.rooms)
+    env = Maze(rooms=config.task.rooms)
     trainer = make_train(config, env)
     nets = make_networks(config, env.action_size)
     learner = make_learner(config, nets, env.action_size)
@@ -145,11 +145,11 @@ def our_updates(args: Args, width: int, n_agents: int):
     key = jax.random.PRNGKey(1)
     buffer = full_of_noise(state.buffer, key)
     eta = jnp.full((args.grid, n), 0.5)
-    ready = replay.ready(buffer, config.batch_size)
+    ready = replay.ready(buffer, config.sac.batch_size)
 
     @functools.partial(jax.jit, static_argnums=5)
     def many(agents, buffer, eta, ready, key, loops=args.loops):  # the trainer's loops, every run of the grid
-        run = lambda a, b, e, r, k: train_loops(learner, a, b, e, r, k, loops, config.batch_size)[0]
+        run = lambda a, b, e, r, k: train_loops(learner, a, b, e, r, k, loops, config.sac.batch_size)[0]
         return jax.vmap(run)(agents, buffer, eta, ready, jax.random.split(key, args.grid))
 
     cost = many.lower(state.agents, buffer, eta, ready, key, 1).compile().cost_analysis()
@@ -168,7 +168,7 @@ def our_e2e(args: Args, width: int):
     config = our_config(args, width, 1, num_envs=1, steps_per_epoch=args.e2e_steps,
                         train_loops_per_epoch=args.e2e_steps // 5, total_steps=1000 * args.e2e_steps, start_steps=0)
     with mock.patch.object(trainer_module, "make_evaluate", no_eval):
-        trainer = make_grid_train(config, Maze(rooms=config.rooms))
+        trainer = make_grid_train(config, Maze(rooms=config.task.rooms))
     eta, seeds = (jnp.asarray(x) for x in config.grid_arrays())
     box = [trainer.init(seeds)]
 
