@@ -3,7 +3,7 @@
     python -m ccp_jax.evaluate RUN_DIR [--episodes 100] [--stochastic] [--epoch E] [--seed S] [--out FILE.json]
 
 Every grid member of the run's checkpoint is evaluated on the same start states, in one vmapped
-program. A training run's per-epoch success comes from a few deterministic episodes (SPEC §3);
+program. A training run's per-epoch success comes from a few deterministic episodes (docs/design.md#hyperparameters);
 with `--stochastic` the actions are sampled as in collection, which tells a first agent that
 hands over only while exploring from one that never does.
 """

@@ -1,4 +1,4 @@
-"""The run folder's files (SPEC §6): config.json, metrics.jsonl, summary.json.
+"""The run folder's files (docs/design.md#contracts): config.json, metrics.jsonl, summary.json.
 
 A finished run's metrics.jsonl may be compacted into metrics.jsonl.gz (`compact_metrics`); every reader
 goes through `read_rows` / `metrics_file`, which take either form.
@@ -18,7 +18,7 @@ from ccp_jax.config import Config, ConfigError
 
 METRICS = "metrics.jsonl"
 COMPACTED = METRICS + ".gz"
-FINAL_WINDOW = 10  # reported success = mean over the last 10 epochs (SPEC §3)
+FINAL_WINDOW = 10  # reported success = mean over the last 10 epochs (docs/design.md#hyperparameters)
 # A critic above this many times `Config.value_bound` has diverged: its entropy bonus adds at most
 # α |A| log 2 / (1 − γ) (no distribution on [−1, 1]^|A| has more entropy), under 9 bounds for α |A| ≤ 13.
 DIVERGED = 10.0

@@ -1,4 +1,4 @@
-"""Figures from run folders (SPEC §6): learning curves over seeds and ratio-sweep heatmaps.
+"""Figures from run folders (docs/design.md#contracts): learning curves over seeds and ratio-sweep heatmaps.
 
     python -m ccp_jax.plot RUN_DIR [RUN_DIR ...] [--out FILE.png] [--metric success_rate]
 

@@ -44,7 +44,7 @@ PANELS = {
                ("auto, gated", ["csac_auto_gated"], None),
                ("auto, trusted", ["csac_auto_trusted"], None),
                ("auto, trusted, floors 0.05 0.3 0.5", ["csac_auto_floorramp"], None)]),
-    # Peg has no robot: its sweep is the one of sessions 10-12 (results/table1_cpu).
+    # Peg has no robot: its sweep is the one in results/table1_cpu.
     "peg": (RESULTS / "table1_cpu" / "peg", STAGE2,
             [("best swept for the grasp, η = 0.9", ["csac_etas_0.9"], (0.9, 1.0)),
              ("auto (η*)", ["csac_etas_auto"], None),
@@ -55,7 +55,7 @@ PANELS = {
 }
 
 
-# Trusted against the best shared ratio on every seed both have (session 42).
+# Trusted against the best shared ratio on every seed both have.
 EVERY_SEED = {
     "maze2": (ROOT / "maze2", "success_rate",
               [("best swept, η = 0.1", ["csac", "csac_fresh_seeds", "csac_trusted_0.1_seeds6to11"], (0.1, 1.0)),

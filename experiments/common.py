@@ -79,11 +79,11 @@ class Scale:
 
 
 SCALES = {
-    # The paper's budget (SPEC §3): [256, 256] nets, 1e6 buffers, 3M maze steps, 5 seeds.
+    # The paper's budget (docs/design.md#hyperparameters): [256, 256] nets, 1e6 buffers, 3M maze steps, 5 seeds.
     "paper": Scale("paper", seeds=5, etas=PAPER_ETAS + (AUTO,),
                    total_steps={"maze2": 3_000_000, "maze3": 3_000_000, "maze4": 3_000_000, "peg": 3_000_000,
                                 "pusher": 3_000_000}),
-    # What a 2-core CPU affords (measured, see experiments/README.md): SPEC §7's [64, 64] yardstick
+    # What a 2-core CPU affords (measured, see experiments/README.md): the learning yardstick's [64, 64]
     # settings, 3 seeds, five of the nine ratios, budgets where the 2-room maze is learnt.
     "cpu": Scale("small", seeds=3, etas=(0.1, 0.3, 0.5, 0.7, 0.9, AUTO),
                  total_steps={"maze2": 150_000, "maze3": 300_000, "maze4": 400_000, "peg": 100_000,

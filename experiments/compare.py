@@ -15,7 +15,7 @@ normal (most seeds end at 0 or 1).
 With `--reference`, each row also gets the chance that a study of `--draw`
 seeds of that variant shows a curve at least as good as a reference curve at
 every --at step: the fraction of all `draw`-seed subsets of its seeds whose
-mean success reaches the reference at each step. For SPEC §7's prototype
+mean success reaches the reference at each step. For the prototype's curve (docs/design.md#the-learning-yardstick)
 (3 seeds, 0.03 / 0.33 / 0.77 at 100 / 150 / 200 k) it says whether a curve
 like the prototype's is a plausible draw of the variant, or a different
 method.
@@ -48,7 +48,7 @@ class Args:
     solved: float = 0.5
     """A seed counts as solved when its final success is at least this (half its final evaluations)."""
     reference: tuple[float, ...] = ()
-    """A reference curve, the mean success at each --at step (e.g. SPEC §7's prototype: 0.03 0.33 0.77)."""
+    """A reference curve, the mean success at each --at step (e.g. the prototype's: 0.03 0.33 0.77)."""
     draw: int = 3
     """Seeds in the reference's study: the size of the seed subsets compared with --reference."""
     out: Optional[Path] = None

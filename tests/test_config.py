@@ -114,7 +114,7 @@ def test_compile_cache_keeps_the_users_folder_else_uses_xdg_cache(tmp_path, monk
 
 
 def test_a_config_json_from_before_the_kinematics_fields_reads_as_the_robot_it_trained():
-    """Runs of sessions 1-27 wrote no maze_reverse / maze_slide: they drove backwards and stopped at walls."""
+    """Runs on the first robot wrote no maze_reverse / maze_slide: they drove backwards and stopped at walls."""
     from ccp_jax.config import Config
     old_maze = {k: v for k, v in make_config("tiny").flat().items() if k not in ("maze_reverse", "maze_slide")}
     legacy = Config.from_dict(old_maze)

@@ -351,11 +351,12 @@ def test_pusher_scripted_controller_succeeds(pusher):
 
 
 def test_import_drops_only_mujoco_warp_notices():
-    """MJX's 'Failed to import warp' notices are dropped from stdout; other output of that import is kept."""
+    """After envs_mjx.configure_cpu(), MJX's 'Failed to import warp' notices are dropped from stdout; other output of
+    that import is kept."""
     import subprocess
     import sys
 
-    script = ("import builtins, envs_mjx\n"
+    script = ("import builtins, envs_mjx\nenvs_mjx.configure_cpu()\n"  # the CLI's call installs the filter
               "_print = builtins.print\n"  # each print of the import below gets a 'kept:' twin the filter must pass
               "builtins.print = lambda *a, **k: (_print(*a, **k), _print('kept:', *a, **k))\n"
               "import brax.envs.base\n"

@@ -16,7 +16,7 @@ import pytest
 import ccp_jax.learner as learner_module
 from ccp_jax.buffer import Transition
 from ccp_jax.collect import completed_channels
-from ccp_jax.config import Config
+from ccp_jax.config import Config, make_config
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments" / "crosscheck"))
 import reference_csac as reference  # noqa: E402
@@ -70,8 +70,8 @@ def _to_reference(agents, ref: "reference.Reference") -> list[dict]:
 ])
 def test_joint_update_equals_reference(etas, absorbing_stages, ready):
     n_agents = len(etas)
-    config = Config(rooms=n_agents, hidden=HIDDEN, etas=(etas[:-1],), absorbing_stages=absorbing_stages,
-                    batch_size=B, buffer_size=4 * B, tanh_log_prob="rlkit")
+    config = make_config("paper", rooms=n_agents, hidden=HIDDEN, etas=(etas[:-1],), absorbing_stages=absorbing_stages,
+                         batch_size=B, buffer_size=4 * B, tanh_log_prob="rlkit")
     nets = learner_module.make_networks(config, ACT)
     learner = learner_module.make_learner(config, nets, ACT)
     ours = learner_module.init_agents(nets, jax.random.PRNGKey(1), n_agents, OBS, ACT, value_range=20.0)
