@@ -41,7 +41,7 @@ from ccp_jax import outputs
 from ccp_jax.collect import agent_of, policy_mean_and_log_std
 from ccp_jax.config import Config, ConfigError
 from ccp_jax.networks import deterministic_action
-from ccp_jax.policy import load_actors
+from ccp_jax.policy import load_member
 
 PLATFORMS = ("cpu", "cuda")
 
@@ -62,11 +62,7 @@ def export_chain(run_dir: str | Path, member: int = 0, epoch: Optional[int] = No
 
     Lowered for every platform of `platforms` that this jax can lower for (CPU always)."""
     run_dir = Path(run_dir)
-    config = outputs.read_config(run_dir)
-    if not 0 <= member < config.grid_size:
-        raise ValueError(f"member: the run has members 0..{config.grid_size - 1}, got {member}")
-    actor, actors = load_actors(run_dir, config, epoch)
-    params = jax.tree.map(lambda x: x[member], actors)
+    config, actor, params = load_member(run_dir, member, epoch)
     obs_size = params["params"]["MLP_0"]["Dense_0"]["kernel"].shape[-2]
     (b,) = jax.export.symbolic_shape("b")
     args = (jax.ShapeDtypeStruct((b, obs_size), jnp.float32), jax.ShapeDtypeStruct((b,), jnp.int32))

@@ -28,6 +28,17 @@ def load_actors(run_dir: str | Path, config: Config, epoch: int | None = None) -
     return trainer.networks.actor, actors
 
 
+def load_member(run_dir: str | Path, member: int = 0, epoch: int | None = None) -> tuple[Config, Actor, Any]:
+    """(config, actor module, member `member`'s actor parameters, leaves [N, ...]) from a run folder's checkpoint
+    (the latest unless `epoch`); a member outside the grid is a ValueError naming `member`."""
+    run_dir = Path(run_dir)
+    config = outputs.read_config(run_dir)
+    if not 0 <= member < config.grid_size:
+        raise ValueError(f"member: the run has members 0..{config.grid_size - 1}, got {member}")
+    actor, actors = load_actors(run_dir, config, epoch)
+    return config, actor, jax.tree.map(lambda x: x[member], actors)
+
+
 def load_policy(run_dir: str | Path, member: int = 0, epoch: int | None = None) -> Callable:
     """The deterministic policy of grid member `member` from a run folder's checkpoint.
 
@@ -36,12 +47,7 @@ def load_policy(run_dir: str | Path, member: int = 0, epoch: int | None = None) 
     stage's own (or the single agent of end-to-end SAC). Uses the latest
     checkpoint unless `epoch` is given.
     """
-    run_dir = Path(run_dir)
-    config = outputs.read_config(run_dir)
-    if not 0 <= member < config.grid_size:
-        raise ValueError(f"member: the run has members 0..{config.grid_size - 1}, got {member}")
-    actor, actors = load_actors(run_dir, config, epoch)
-    params = jax.tree.map(lambda x: x[member], actors)
+    config, actor, params = load_member(run_dir, member, epoch)
 
     @jax.jit
     def policy(obs: jax.Array, stage: jax.Array) -> jax.Array:
