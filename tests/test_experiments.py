@@ -56,6 +56,10 @@ def test_table_cells_are_mean_std_over_seeds_next_to_the_paper(maze2_runs):
     assert "| CSAC | auto | 0.83 ± 0.17 (–) |" in lines
     assert "| SAC |  | 0.17 ± 0.17 (1.00) |" in lines
     assert not any(line.startswith("| Naive") for line in lines)  # not run: no row
+    # With intervals: 2 seeds' finals (0.67, 0) resample to means 0, 0.33, 0.67; P(η = 0.1 > SAC's (0, 0.33)):
+    # pairs 0.67 > 0, 0.67 > 0.33, 0 = 0 (a half), 0 < 0.33 -> 2.5 / 4.
+    assert "| CSAC | 0.1 | IQM 0.33 [0.00, 0.67], mean 0.33 [0.00, 0.67] |" in lines
+    assert any(line.startswith("| maze2 | CSAC η = 0.1 | SAC | 0.62 [") for line in lines)
     # Where episodes end, per seed (1-based stage): seed 0 of η = 0.1 succeeded in 2 of 3 evaluations.
     where = lines[lines.index("## Where the evaluation episodes end"):]
     assert "| CSAC | 0.1 | 1.7 1.0 |" in where
