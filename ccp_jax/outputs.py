@@ -32,10 +32,30 @@ def _json_default(x: Any):
     raise TypeError(f"not JSON serialisable: {type(x)}")
 
 
+def strict(x: Any) -> Any:
+    """`x` with every non-finite float (NaN, ±inf: a diverged loss or critic) as None, so the files are strict
+    JSON (null) that any parser reads; numpy scalars and arrays become Python numbers and lists."""
+    if isinstance(x, (float, np.floating)):
+        return float(x) if math.isfinite(x) else None
+    if isinstance(x, np.integer):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return strict(x.tolist())
+    if isinstance(x, dict):
+        return {k: strict(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [strict(v) for v in x]
+    return x
+
+
+def _dumps(obj: Any, **kwargs) -> str:
+    return json.dumps(strict(obj), default=_json_default, allow_nan=False, **kwargs)
+
+
 def write_json(path: Path, obj: Any) -> None:
     """Writes atomically (temp file + rename), so a crash never leaves half a file."""
     tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text(json.dumps(obj, indent=2, default=_json_default) + "\n")
+    tmp.write_text(_dumps(obj, indent=2) + "\n")
     os.replace(tmp, path)
 
 
@@ -128,7 +148,7 @@ def _tp_fields(metrics, member: int) -> dict:
 def append_rows(path: Path, rows: Iterable[dict]) -> None:
     with path.open("a") as f:
         for row in rows:
-            f.write(json.dumps(row, default=_json_default) + "\n")
+            f.write(_dumps(row) + "\n")
         f.flush()
         os.fsync(f.fileno())
 
@@ -136,7 +156,7 @@ def append_rows(path: Path, rows: Iterable[dict]) -> None:
 def write_rows(path: Path, rows: Iterable[dict]) -> None:
     """Replaces the file's rows atomically."""
     tmp = path.with_suffix(path.suffix + ".tmp")
-    tmp.write_text("".join(json.dumps(row, default=_json_default) + "\n" for row in rows))
+    tmp.write_text("".join(_dumps(row) + "\n" for row in rows))
     os.replace(tmp, path)
 
 
@@ -287,14 +307,15 @@ def critic_peaks(rows: list[dict], limit: float) -> dict:
     with_critics = [r for r in rows if r.get("q_max")]
     if not with_critics:
         return {"q_peak": None, "q_diverged_env_steps": None}
-    return {"q_peak": np.max([r["q_max"] for r in with_critics], axis=0).tolist(),
+    q_max = np.array([[np.nan if q is None else q for q in r["q_max"]] for r in with_critics], np.float64)
+    return {"q_peak": np.max(q_max, axis=0).tolist(),  # NaN where a critic went NaN (None once written)
             "q_diverged_env_steps": next((r["env_steps"] for r in with_critics
                                           if any(_above(q, limit) for q in r["q_max"])), None)}
 
 
 def _above(q: float, limit: float) -> bool:
-    """Whether a critic value is above `limit`; NaN counts as above."""
-    return not q <= limit
+    """Whether a critic value is above `limit`; NaN (None once written) counts as above."""
+    return q is None or not q <= limit
 
 
 def eta_text(eta: list) -> str:

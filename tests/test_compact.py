@@ -36,8 +36,9 @@ def _rows() -> list[dict]:
 
 
 def _finished(folder: Path, rows: list[dict]) -> Path:
+    """A finished run folder; its metrics as json writes them, bare NaN included, as older runs hold them."""
     folder.mkdir(parents=True, exist_ok=True)
-    outputs.write_rows(folder / "metrics.jsonl", rows)
+    (folder / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
     outputs.write_json(folder / "summary.json", {"members": []})
     return folder
 
@@ -180,3 +181,20 @@ def test_resuming_a_compacted_run_restores_its_raw_metrics(tmp_path):
     assert not (out / "metrics.jsonl.gz").exists()
     assert (out / "metrics.jsonl").read_text().startswith(original)  # the same bytes, then epoch 3's row
     assert [r["epoch"] for r in outputs.read_rows(out / "metrics.jsonl")] == [1, 2, 3]
+
+
+def test_non_finite_values_are_written_as_strict_json_null(tmp_path):
+    """A diverged loss (NaN, inf) is null in metrics.jsonl and summary.json, which strict parsers accept; a critic
+    that went NaN still counts as diverged when the rows are read back."""
+    rows = [dict(member=0, epoch=1, env_steps=10, q_loss=[float("nan")], pi_loss=[np.float32("inf")],
+                 q_max=[1.0, float("nan")], arr=np.array([1.5, -np.inf]))]
+    outputs.write_rows(tmp_path / "m.jsonl", rows)
+    outputs.append_rows(tmp_path / "m.jsonl", rows)
+    outputs.write_json(tmp_path / "s.json", {"peak": float("-inf"), "ok": np.float64(2.5)})
+    strict = lambda text: json.loads(text, parse_constant=lambda c: pytest.fail(f"non-strict JSON constant {c}"))
+    back = [strict(line) for line in (tmp_path / "m.jsonl").read_text().splitlines()]
+    assert back[0] == back[1] == dict(member=0, epoch=1, env_steps=10, q_loss=[None], pi_loss=[None],
+                                      q_max=[1.0, None], arr=[1.5, None])
+    assert strict((tmp_path / "s.json").read_text()) == {"peak": None, "ok": 2.5}
+    peaks = outputs.critic_peaks(back, limit=100.0)
+    assert peaks["q_diverged_env_steps"] == 10 and peaks["q_peak"][0] == 1.0 and np.isnan(peaks["q_peak"][1])
