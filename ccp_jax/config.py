@@ -138,6 +138,10 @@ class Budget:
         if self.total_steps < self.steps_per_epoch:
             raise ConfigError("total_steps", f"must be at least one epoch ({self.steps_per_epoch} steps), "
                                              f"got {self.total_steps}")
+        if self.total_steps % self.steps_per_epoch:  # else the last part-epoch would silently not be trained
+            lower = self.total_steps - self.total_steps % self.steps_per_epoch
+            raise ConfigError("total_steps", f"must be a whole number of epochs of {self.steps_per_epoch} steps, got "
+                                             f"{self.total_steps}: use {lower} or {lower + self.steps_per_epoch}")
 
 
 @dataclasses.dataclass(frozen=True)

@@ -242,3 +242,11 @@ def test_help_shows_the_core_flags_first_the_rest_by_section_and_docs_cli_md_is_
                  "--wandb-project", "--eta-auto-rule"):
         assert flag in first, flag
     assert first.count("│ --") <= 25
+
+
+def test_a_budget_of_part_of_an_epoch_is_refused_with_the_nearest_whole_ones():
+    """--total-steps 250 with 200-step epochs would train one epoch (200 steps) without a word."""
+    with pytest.raises(ConfigError, match=r"^total_steps: must be a whole number of epochs of 200 steps, got 250: "
+                                          r"use 200 or 400$"):
+        make_config("tiny", total_steps=250)
+    assert make_config("tiny", total_steps=400).num_epochs == 2
