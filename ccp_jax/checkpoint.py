@@ -163,7 +163,8 @@ def restore(mngr: ocp.CheckpointManager, abstract_state: Any, item: str = "state
     steps = mngr.all_steps()
     folder = Path(mngr.directory)
     if not steps:
-        raise CheckpointError(f"no complete checkpoint in {folder}")
+        raise CheckpointError(f"no complete checkpoint in {folder}: a run stopped before its first checkpoint "
+                              "cannot be resumed; start it again with another --out (or delete that folder)")
     if epoch is None:
         epoch = max(steps)
     elif epoch not in steps:

@@ -65,7 +65,7 @@ def read_config(run_dir: Path, field: str = "run_dir") -> Config:
     path = Path(run_dir) / "config.json"
     try:
         return Config.from_dict(json.loads(path.read_text()))
-    except FileNotFoundError:
+    except (FileNotFoundError, NotADirectoryError):
         raise ConfigError(field, f"{run_dir} holds no run (no config.json)") from None
     except (json.JSONDecodeError, TypeError) as err:
         raise ConfigError(field, f"{path} is unreadable: {err}") from None

@@ -265,9 +265,19 @@ def prepare_out(out: Optional[Path], config: Config) -> Path:
     """Creates the run folder; refuses one that already holds a run, so nothing is overwritten."""
     if out is None:
         out = Path("runs") / f"{config.task.env.replace(':', '_')}-{config.algo}-{time.strftime('%Y%m%d-%H%M%S')}"
-    if (out / "config.json").exists() or (out / "metrics.jsonl").exists():
-        raise ConfigError("out", f"{out} already holds a run; choose another --out, or continue it with --resume {out}")
-    out.mkdir(parents=True, exist_ok=True)
+    if out.exists() and not out.is_dir():
+        raise ConfigError("out", f"{out} is a file, not a folder; choose another --out")
+    checkpoints = out / checkpoint.CHECKPOINT_DIR
+    held = [name for name in ("config.json", "metrics.jsonl", "metrics.jsonl.gz", "summary.json") if (out / name).exists()]
+    if checkpoints.is_dir() and any(checkpoints.iterdir()):  # another run's: they would be mixed with this one's
+        held.append(checkpoint.CHECKPOINT_DIR)
+    if held:
+        raise ConfigError("out", f"{out} already holds a run ({', '.join(held)}); choose another --out, or continue it "
+                                 f"with --resume {out}")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:  # under a file, no permission, a read-only or virtual file system
+        raise ConfigError("out", f"cannot create {out} ({err.strerror or err}); choose another --out") from None
     return out
 
 
