@@ -17,6 +17,7 @@ import ast
 import dataclasses
 import functools
 import inspect
+import json
 import os
 import sys
 import textwrap
@@ -82,8 +83,9 @@ class Args:
     """Run folder (default runs/<env>-<algo>-<time>); must not already hold a run."""
     resume: Optional[Path] = None
     """Continue the run in this folder from its latest checkpoint; only --total-steps may change."""
-    checkpoint_every: int = 10
-    """Save a checkpoint every K epochs (and always after the last); 0: only after the last."""
+    checkpoint_every: Optional[int] = None
+    """Save a checkpoint every K epochs (and always after the last); 0: only after the last. Default 10, or with
+    --resume the resumed run's."""
     progress: bool = True
     """Show a progress bar."""
     compile_cache: bool = True
@@ -261,6 +263,21 @@ def check_per_agent_lengths(config: Config) -> None:
                               "agent use --eta")
 
 
+RUN_OPTIONS = "run.json"  # the run's options that are not settings of what it trains (the checkpoint interval)
+DEFAULT_CHECKPOINT_EVERY = 10
+
+
+def saved_checkpoint_every(run_dir: Path) -> int:
+    """The checkpoint interval the run in `run_dir` was started with (10 for runs from before it was saved)."""
+    path = Path(run_dir) / RUN_OPTIONS
+    if not path.exists():
+        return DEFAULT_CHECKPOINT_EVERY
+    try:
+        return int(json.loads(path.read_text())["checkpoint_every"])
+    except (ValueError, KeyError, TypeError) as err:
+        raise ConfigError("resume", f"{path} is unreadable ({err}); repair it or give --checkpoint-every") from None
+
+
 def prepare_out(out: Optional[Path], config: Config) -> Path:
     """Creates the run folder; refuses one that already holds a run, so nothing is overwritten."""
     if out is None:
@@ -369,6 +386,7 @@ def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_e
     start -= sum(r["epoch_wall_s"] for r in rows if r["member"] == 0)  # a resumed run's earlier epochs count too
     if lead:
         outputs.write_json(out / "config.json", config.to_dict())
+        outputs.write_json(out / RUN_OPTIONS, {"checkpoint_every": checkpoint_every})  # what --resume keeps
 
     bar = tqdm(range(first_epoch, config.num_epochs), initial=first_epoch, total=config.num_epochs,
                desc=f"{config.algo} {config.task.env} x{config.grid_size}", unit="epoch",
@@ -428,22 +446,24 @@ def main(argv: Optional[list[str]] = None) -> dict:
     if hosts.distributed:
         jax.distributed.initialize(coordinator_address=hosts.coordinator, num_processes=hosts.num_processes,
                                    process_id=hosts.process_id)
-    if args.checkpoint_every < 0:
+    if args.checkpoint_every is not None and args.checkpoint_every < 0:
         raise ConfigError("checkpoint_every", f"must be >= 0, got {args.checkpoint_every}")
     check_members_at_once(hosts.members_at_once)  # before the run folder is made
     if args.compile_cache:
         enable_compile_cache()
     if args.resume is not None:
         config, out = resume_config(args), args.resume
+        every = saved_checkpoint_every(out) if args.checkpoint_every is None else args.checkpoint_every
     else:
         config = config_from_args(args)
         out = prepare_out(args.out, config)
+        every = DEFAULT_CHECKPOINT_EVERY if args.checkpoint_every is None else args.checkpoint_every
     devices = grid_devices(config.grid_size)
     print(f"{'Resuming' if args.resume else 'Training'} {config.grid_size} run(s) of {config.algo} on "
           f"{config.task.env} ({config.num_stages} stages, {config.num_epochs} epochs of {config.budget.steps_per_epoch} steps) on "
           f"{len(devices)} {devices[0].platform} device{'s' * (len(devices) > 1)} -> {out}")
     summary = run(config, out, progress=args.progress, resume=args.resume is not None,
-                  checkpoint_every=args.checkpoint_every, tensorboard=args.tensorboard,
+                  checkpoint_every=every, tensorboard=args.tensorboard,
                   wandb_project=args.wandb_project, members_at_once=hosts.members_at_once, devices=devices)
     print(outputs.summary_table(summary))
     print(f"wall time {summary['wall_s']:.0f} s; files in {out}")

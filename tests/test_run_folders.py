@@ -47,3 +47,14 @@ def test_resume_at_a_file_names_the_argument(tmp_path):
     afile.write_text("x")
     with pytest.raises(ConfigError, match=r"^resume: .*run.txt holds no run \(no config.json\)"):
         main(TINY + ["--resume", str(afile)])
+
+
+def test_resume_keeps_the_checkpoint_interval_the_run_started_with(tmp_path):
+    """--checkpoint-every lives in run.json; --resume without it used to fall back to 10."""
+    out = tmp_path / "run"
+    main(TINY + ["--total-steps", "600", "--checkpoint-every", "1", "--out", str(out)])
+    assert (out / "run.json").read_text().count('"checkpoint_every": 1') == 1
+    main(TINY + ["--resume", str(out), "--total-steps", "1200"])
+    mngr = checkpoint.manager(out)
+    assert mngr.all_steps() == [5, 6]  # every epoch checkpointed (2 kept); with an interval of 10 only 6
+    mngr.close()
