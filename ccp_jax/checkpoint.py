@@ -51,19 +51,6 @@ def leaf_names(tree: Any) -> list[tuple[str, ...]]:
     return [tuple(_name(k) for k in path) for path, _ in jax.tree_util.tree_flatten_with_path(tree)[0]]
 
 
-def _keyed(tree: Any) -> dict[str, Any]:
-    """The tree's leaves as a nested dict keyed by their paths' names, so a checkpoint stays readable when a field
-    is added to the state; zero-size arrays are left out (orbax cannot write those; MJX states have some)."""
-    nested: dict[str, Any] = {}
-    for names, x in zip(leaf_names(tree), jax.tree.leaves(tree)):
-        if x.size > 0:
-            node = nested
-            for name in names[:-1]:
-                node = node.setdefault(name, {})
-            node[names[-1]] = x
-    return nested
-
-
 def _flat(nested: dict[str, Any], prefix: tuple[str, ...] = ()) -> dict[tuple[str, ...], Any]:
     """{path: leaf} of a nested dict (a checkpoint's tree or its metadata)."""
     out = {}
@@ -86,9 +73,10 @@ def _nest(flat: dict[tuple[str, ...], Any]) -> dict[str, Any]:
     return nested
 
 
-def _by_position(tree: Any) -> dict[str, Any]:
-    """The layout of checkpoints written before leaves were keyed by path: the nonempty leaves by flat index."""
-    return {str(i): x for i, x in enumerate(jax.tree.leaves(tree)) if x.size > 0}
+def _keyed(tree: Any) -> dict[str, Any]:
+    """The tree's leaves as a nested dict keyed by their paths' names, so a checkpoint stays readable when a field
+    is added to the state; zero-size arrays are left out (orbax cannot write those; MJX states have some)."""
+    return _nest({names: x for names, x in zip(leaf_names(tree), jax.tree.leaves(tree)) if x.size > 0})
 
 
 def save(mngr: ocp.CheckpointManager, epoch: int, state: Any) -> None:
@@ -115,18 +103,18 @@ def _unreadable(folder: Path, epoch: int, steps, err: Exception) -> CheckpointEr
     return CheckpointError(f"{folder / str(epoch)} cannot be restored ({type(err).__name__}: {str(err)[:300]}){hint}")
 
 
-def _match(meta: dict, abstract_state: Any, item: str, where: Path, defaults: Any) -> list:
+def _match(saved: dict[tuple[str, ...], Any], abstract_state: Any, item: str, where: Path, defaults: Any) -> list:
     """Per leaf of `abstract_state` (in leaf order): the checkpoint path it restores from, "empty" (a zero-size
     leaf) or "default" (a leaf the checkpoint lacks, taken from `defaults`). Checkpoints written before leaves
-    were keyed by path are matched by position, and only if they hold as many arrays as the state."""
+    were keyed by path are matched by position, and only if they hold as many arrays as the state.
+    `saved`: the checkpoint's arrays (metadata) by path (`_flat`)."""
     leaves = jax.tree.leaves(abstract_state)
-    if all(k.isdigit() for k in meta):  # keyed by position
-        if len(meta) != sum(x.size > 0 for x in leaves):
-            raise CheckpointError(f"{where} holds {len(meta)} arrays where this version's {item} has "
-                                  f"{sum(x.size > 0 for x in leaves)}: it was saved by another version of ccp-jax (or "
-                                  "of the env); start the run afresh")
+    if all(len(k) == 1 and k[0].isdigit() for k in saved):  # keyed by position
+        nonempty = sum(x.size > 0 for x in leaves)
+        if len(saved) != nonempty:
+            raise CheckpointError(f"{where} holds {len(saved)} arrays where this version's {item} has {nonempty}: it "
+                                  "was saved by another version of ccp-jax (or of the env); start the run afresh")
         return ["empty" if x.size == 0 else (str(i),) for i, x in enumerate(leaves)]
-    saved = _flat(meta)
     keys = [names if x.size > 0 else "empty" for names, x in zip(leaf_names(abstract_state), leaves)]
     missing = ["/".join(k) for k in keys if k != "empty" and k not in saved]
     if missing and defaults is None:
@@ -174,8 +162,8 @@ def restore(mngr: ocp.CheckpointManager, abstract_state: Any, item: str = "state
     except Exception as err:  # orbax raises many types for damaged files
         raise _unreadable(folder, epoch, steps, err) from err
     leaves, treedef = jax.tree.flatten(abstract_state)
-    sources = _match(meta, abstract_state, item, folder / str(epoch), defaults)
     flat_meta = _flat(meta)
+    sources = _match(flat_meta, abstract_state, item, folder / str(epoch), defaults)
     wanted = {k: x for k, x in zip(sources, leaves) if k not in ("empty", "default")}
     slots = {m.shape[0] for m in flat_meta.values()}
     repad = grid_size is not None and slots != {x.shape[0] for x in wanted.values()} and min(slots) >= grid_size

@@ -24,14 +24,6 @@ FINAL_WINDOW = 10  # reported success = mean over the last 10 epochs (docs/desig
 DIVERGED = 10.0
 
 
-def _json_default(x: Any):
-    if isinstance(x, (np.floating, np.integer)):
-        return x.item()
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    raise TypeError(f"not JSON serialisable: {type(x)}")
-
-
 def strict(x: Any) -> Any:
     """`x` with every non-finite float (NaN, ±inf: a diverged loss or critic) as None, so the files are strict
     JSON (null) that any parser reads; numpy scalars and arrays become Python numbers and lists."""
@@ -49,7 +41,7 @@ def strict(x: Any) -> Any:
 
 
 def _dumps(obj: Any, **kwargs) -> str:
-    return json.dumps(strict(obj), default=_json_default, allow_nan=False, **kwargs)
+    return json.dumps(strict(obj), allow_nan=False, **kwargs)
 
 
 def write_json(path: Path, obj: Any) -> None:
@@ -183,13 +175,22 @@ def read_rows(path: Path, field: str = "run_dir") -> list[dict]:
     path = Path(path)
     if path.suffix != ".gz" and not path.exists() and (compacted := path.with_name(path.name + ".gz")).exists():
         path = compacted
-    if path.suffix == ".gz":
-        try:
-            text = gzip.decompress(path.read_bytes()).decode()
-        except (OSError, EOFError, UnicodeDecodeError) as err:  # gzip.BadGzipFile is an OSError
-            raise ConfigError(field, f"{path} is not a readable gzip file ({err}); repair or restore it") from None
-    else:
-        text = path.read_text()
+    return _parse_rows(_decode(path.read_bytes(), path, field), path, field)
+
+
+def _decode(data: bytes, path: Path, field: str) -> str:
+    """The text of a metrics file's bytes, gunzipped if `path` is a .gz; an unreadable gzip is a ConfigError
+    naming `field`."""
+    if path.suffix != ".gz":
+        return data.decode()
+    try:
+        return gzip.decompress(data).decode()
+    except (OSError, EOFError, UnicodeDecodeError) as err:  # gzip.BadGzipFile is an OSError
+        raise ConfigError(field, f"{path} is not a readable gzip file ({err}); repair or restore it") from None
+
+
+def _parse_rows(text: str, path: Path, field: str) -> list[dict]:
+    """The complete rows of a jsonl text (`read_rows`); `path` and `field` name a damaged line's file."""
     rows = []
     for number, line in enumerate(text.split("\n")[:-1], start=1):
         if not line.strip():
@@ -245,10 +246,10 @@ def compact_metrics(run_dir: Path) -> tuple[int, int]:
     if not source.exists():
         raise ConfigError("run_dir", f"{run_dir} holds no {METRICS} to compact")
     data = source.read_bytes()
-    text = gzip.decompress(data).decode() if source.suffix == ".gz" else data.decode()
+    text = _decode(data, source, "run_dir")
     if text and not text.endswith("\n"):
         raise ConfigError("run_dir", f"{source}'s last row has no newline (cut while written); repair it first")
-    rows = read_rows(source)
+    rows = _parse_rows(text, source, "run_dir")
     packed = gzip.compress("".join(_compact_text(r) + "\n" for r in rows).encode(), compresslevel=9, mtime=0)
     back = [_ROWS.decode(line) for line in gzip.decompress(packed).decode().splitlines()]
     # json's own text of a value is exact (every float's repr, NaN, int or bool, key order), so equal texts are
