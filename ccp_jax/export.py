@@ -38,22 +38,10 @@ import jax
 import jax.numpy as jnp
 
 from ccp_jax import outputs
-from ccp_jax.collect import agent_of, policy_mean_and_log_std
-from ccp_jax.config import Config, ConfigError
-from ccp_jax.networks import deterministic_action
-from ccp_jax.policy import load_member
+from ccp_jax.config import ConfigError
+from ccp_jax.policy import chain_policy, load_member
 
 PLATFORMS = ("cpu", "cuda")
-
-
-def chain_function(config: Config, actor, params):
-    """policy(obs [b, obs_size], stage [b]) -> action [b, action_size] with `params` (one member's, [N, ...]) inside."""
-
-    def policy(obs: jax.Array, stage: jax.Array) -> jax.Array:
-        mean, _ = policy_mean_and_log_std(actor, params, obs, agent_of(config, stage.astype(jnp.int32)))
-        return deterministic_action(mean)
-
-    return policy
 
 
 def export_chain(run_dir: str | Path, member: int = 0, epoch: Optional[int] = None,
@@ -66,7 +54,7 @@ def export_chain(run_dir: str | Path, member: int = 0, epoch: Optional[int] = No
     obs_size = params["params"]["MLP_0"]["Dense_0"]["kernel"].shape[-2]
     (b,) = jax.export.symbolic_shape("b")
     args = (jax.ShapeDtypeStruct((b, obs_size), jnp.float32), jax.ShapeDtypeStruct((b,), jnp.int32))
-    fn = jax.jit(chain_function(config, actor, params))
+    fn = jax.jit(chain_policy(config, actor, params))
     try:
         exported = jax.export.export(fn, platforms=tuple(platforms))(*args)
     except Exception:  # noqa: BLE001 - a jax that cannot lower for an accelerator here still exports for the CPU

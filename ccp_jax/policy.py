@@ -39,6 +39,17 @@ def load_member(run_dir: str | Path, member: int = 0, epoch: int | None = None) 
     return config, actor, jax.tree.map(lambda x: x[member], actors)
 
 
+def chain_policy(config: Config, actor: Actor, params: Any) -> Callable[[jax.Array, jax.Array], jax.Array]:
+    """policy(obs [b, obs_size], stage [b]) -> action [b, action_size]: the deterministic action (tanh of the mean)
+    of the agent acting in each stage, with one member's actor `params` (leaves [N, ...]) inside."""
+
+    def policy(obs: jax.Array, stage: jax.Array) -> jax.Array:
+        mean, _ = policy_mean_and_log_std(actor, params, obs, agent_of(config, stage.astype(jnp.int32)))
+        return deterministic_action(mean)
+
+    return policy
+
+
 def load_policy(run_dir: str | Path, member: int = 0, epoch: int | None = None) -> Callable:
     """The deterministic policy of grid member `member` from a run folder's checkpoint.
 
@@ -47,13 +58,11 @@ def load_policy(run_dir: str | Path, member: int = 0, epoch: int | None = None) 
     stage's own (or the single agent of end-to-end SAC). Uses the latest
     checkpoint unless `epoch` is given.
     """
-    config, actor, params = load_member(run_dir, member, epoch)
+    chain = chain_policy(*load_member(run_dir, member, epoch))
 
     @jax.jit
     def policy(obs: jax.Array, stage: jax.Array) -> jax.Array:
         batch_shape = stage.shape
-        obs2, stage1 = obs.reshape(-1, obs.shape[-1]), stage.reshape(-1).astype(jnp.int32)
-        mean, _ = policy_mean_and_log_std(actor, params, obs2, agent_of(config, stage1))
-        return deterministic_action(mean).reshape(batch_shape + (-1,))
+        return chain(obs.reshape(-1, obs.shape[-1]), stage.reshape(-1)).reshape(batch_shape + (-1,))
 
     return policy
