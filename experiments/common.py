@@ -245,6 +245,23 @@ def mean_std(values: Sequence[float]) -> str:
     return f"{np.mean(values):.2f} ± {np.std(values):.2f}"
 
 
+def with_interval(values: Sequence[float], aggregate: Callable[[Sequence[float]], float]) -> str:
+    """'0.98 [0.95, 1.00]': `aggregate` (e.g. `stats.iqm`) of the seeds' values and its 95 % stratified-bootstrap
+    interval."""
+    from ccp_jax import stats
+
+    low, high = stats.bootstrap_ci(values, aggregate)
+    return f"{aggregate(values):.2f} [{low:.2f}, {high:.2f}]"
+
+
+def improvement(x: Sequence[float], y: Sequence[float]) -> str:
+    """'0.62 [0.25, 1.00]': P(a seed of x ends above a seed of y; ties count half) and its 95 % bootstrap interval."""
+    from ccp_jax import stats
+
+    low, high = stats.probability_of_improvement_ci(x, y)
+    return f"{stats.probability_of_improvement(x, y):.2f} [{low:.2f}, {high:.2f}]"
+
+
 def eta_label(eta: float | str) -> str:
     return eta if isinstance(eta, str) else f"{eta:g}"
 

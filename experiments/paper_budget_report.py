@@ -23,10 +23,11 @@ from typing import Optional
 import numpy as np
 
 from ccp_jax import outputs, stats
-from common import ALGO_NAMES, PAPER_TABLE1, RESULTS, write_text
+from common import ALGO_NAMES, PAPER_TABLE1, RESULTS, improvement, with_interval, write_text
 from paper_budget import QUEUE, SEEDS, Cell
 
-WINDOW = 10  # epochs in the final-success mean and the running success
+# Epochs in the final-success mean (the paper's, as in summary.json) and in the running success.
+WINDOW = outputs.FINAL_WINDOW
 
 
 @dataclasses.dataclass
@@ -100,18 +101,13 @@ def paper_value(cell: Cell) -> Optional[float]:
     return PAPER_TABLE1["csac"][eta[0]][cell.domain] if len(eta) == 1 else None
 
 
-def interval(values: list[float], aggregate) -> str:
-    low, high = stats.bootstrap_ci(values, aggregate)
-    return f"{aggregate(values):.2f} [{low:.2f}, {high:.2f}]"
-
-
 def cell_row(cell: Cell, members: list[Member]) -> dict:
     finals = [m.final for m in members]
     firsts = [m.first_success for m in members]
     peaks = [float(m.running.max()) if m.running.size else float("nan") for m in members]
     return dict(domain=cell.domain, method=label(cell), cell=cell.key, seeds=len(members),
                 env_steps=int(min(m.steps[-1] for m in members)), finals=finals,
-                mean=interval(finals, stats.mean), iqm=interval(finals, stats.iqm),
+                mean=with_interval(finals, stats.mean), iqm=with_interval(finals, stats.iqm),
                 solved=sum(f >= 0.5 for f in finals), first=firsts,
                 solved_at=[m.solved_at for m in members],
                 peak=peaks, drop=[p - f for p, f in zip(peaks, finals)],
@@ -128,13 +124,12 @@ def improvement_lines(found: dict[Cell, list[Member]]) -> list[str]:
             if ours is None:
                 continue
             x, y = [m.final for m in found[ours]], [m.final for m in found[base]]
-            low, high = stats.probability_of_improvement_ci(x, y)
             lines.append(f"| {domain} | {label(ours)} | {label(base)} | "
-                         f"{stats.probability_of_improvement(x, y):.2f} [{low:.2f}, {high:.2f}] |")
+                         f"{improvement(x, y)} |")
     return lines
 
 
-def markdown(rows: list[dict], improvement: list[str]) -> str:
+def markdown(rows: list[dict], improvements: list[str]) -> str:
     fmt = lambda x: "–" if x is None else f"{x:.2f}"
     head = ("| maze | method | env steps | seeds | mean [95 % CI] | IQM [95 % CI] | per seed | solved (≥ 0.5) "
             "| running success ≥ 0.5 at (env steps, per seed) | paper (3 M, 5 seeds) |\n|---|---|---|---|---|---|---|---|---|---|\n")
@@ -158,7 +153,7 @@ def markdown(rows: list[dict], improvement: list[str]) -> str:
               "|---|---|---|\n" + ends
             + "\n## Probability of improvement\n\nP(a seed of CSAC at our ratio ends above a seed of the baseline; "
               "ties count half), 95 % bootstrap interval.\n\n| maze | CSAC | baseline | P(CSAC > baseline) |\n"
-              "|---|---|---|---|\n" + "\n".join(improvement) + "\n")
+              "|---|---|---|---|\n" + "\n".join(improvements) + "\n")
 
 
 def csv_text(rows: list[dict]) -> str:

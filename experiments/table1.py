@@ -29,8 +29,9 @@ import numpy as np
 
 from ccp_jax import stats
 from ccp_jax.eta import AUTO, parse_eta
-from common import (ALGO_NAMES, DOMAINS, PAPER_TABLE1, SCALES, ScaleName, cli, eta_label, final_ends, final_success, fmt, mean_std,
-                    merged_summary, read_json, results_folder, run_grid, swept_folder, swept_runs, write_text)
+from common import (ALGO_NAMES, DOMAINS, PAPER_TABLE1, SCALES, ScaleName, cli, eta_label, final_ends, final_success, fmt,
+                    improvement, mean_std, merged_summary, read_json, results_folder, run_grid, swept_folder, swept_runs,
+                    with_interval, write_text)
 
 ALGOS = ("csac", "sac", "naive", "tp")
 
@@ -160,11 +161,7 @@ def method_table(rows: list[dict], domains: tuple[str, ...], cell_text) -> list[
 
 def interval_text(values: list[float]) -> str:
     """'IQM 0.98 [0.95, 1.00], mean 0.98 [0.95, 1.00]': each with its 95 % stratified-bootstrap interval."""
-    parts = []
-    for name, aggregate in (("IQM", stats.iqm), ("mean", stats.mean)):
-        low, high = stats.bootstrap_ci(values, aggregate)
-        parts.append(f"{name} {aggregate(values):.2f} [{low:.2f}, {high:.2f}]")
-    return ", ".join(parts)
+    return f"IQM {with_interval(values, stats.iqm)}, mean {with_interval(values, stats.mean)}"
 
 
 def intervals(rows: list[dict], domains: tuple[str, ...]) -> str:
@@ -177,10 +174,8 @@ def intervals(rows: list[dict], domains: tuple[str, ...]) -> str:
             continue
         best = max(csac, key=lambda r: np.mean(r["success"]))
         for base in (r for r in rows if r["domain"] == domain and r["algo"] in ("naive", "sac", "tp")):
-            low, high = stats.probability_of_improvement_ci(best["success"], base["success"])
-            p = stats.probability_of_improvement(best["success"], base["success"])
             lines.append(f"| {domain} | CSAC η = {eta_label(best['eta'])} | {ALGO_NAMES[base['algo']]} | "
-                         f"{p:.2f} [{low:.2f}, {high:.2f}] |")
+                         f"{improvement(best['success'], base['success'])} |")
     return ("\n## With intervals\n\nPer cell, the seeds' final success as IQM and mean, each with its 95 % "
             "stratified-bootstrap interval (`ccp_jax.stats`); with 3 seeds the IQM is the mean and an interval spans most of "
             "what 3 values allow.\n\n" + "\n".join(table)
