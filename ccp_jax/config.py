@@ -634,9 +634,8 @@ def preset_settings(preset: str) -> dict[str, Any]:
 
 def make_config(preset: PresetName = "paper", **overrides) -> Config:
     """A `Config` from a named preset, with explicit overrides (flat names) on top."""
-    if preset not in PRESETS:
-        raise ConfigError("preset", f"unknown preset {preset!r}; choose one of {tuple(PRESETS)}")
+    settings = preset_settings(preset)  # refuses an unknown preset
     unknown = set(overrides) - set(SECTION_OF)
     if unknown:
         raise ConfigError(sorted(unknown)[0], "not a configuration field")
-    return Config.from_flat({**PRESETS[preset], **overrides})
+    return Config.from_flat({**settings, **overrides})
