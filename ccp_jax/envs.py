@@ -47,7 +47,13 @@ def user_env(spec: str, check: bool = False) -> "Env":
         raise ConfigError("env", f"cannot import {module_name!r} for {spec!r}: {err}") from None
     except AttributeError:
         raise ConfigError("env", f"module {module_name!r} has no factory {factory!r}") from None
-    env = make()
+    if not callable(make):
+        raise ConfigError("env", f"{spec!r}: {module_name}.{factory} is a {type(make).__name__}, not a factory; "
+                                 "name a function (or class) that takes no arguments and returns the env")
+    try:
+        env = make()
+    except Exception as err:  # the user's code: say whose it is, keep its traceback as the cause
+        raise ConfigError("env", f"the factory {spec!r} raised {type(err).__name__}: {err}") from err
     if check:
         from envs_mjx.contract import EnvContractError, check_env
 

@@ -4,7 +4,7 @@
     check_env(MyEnv())            # raises EnvContractError listing every broken rule
 
 The check resets a batch of `num_envs` envs with ``jax.jit(jax.vmap(env.reset))``
-and steps it `steps` times with ``jax.jit(jax.vmap(env.step))`` and uniform
+and steps it (by default for one whole episode) with ``jax.vmap(env.step)`` and uniform
 random actions in [-1, 1], resetting envs whose episode ended (as the trainer
 does). It reports each broken rule once, with where it was first seen.
 """
@@ -29,6 +29,8 @@ _FIELDS: tuple[tuple[str, str, tuple], ...] = (
     ("metrics['success']", "float32", ()),
 )
 _TOL = 1e-5
+MIN_STEPS = 50  # steps checked at least, for envs with short or no stated episodes
+CHUNK = 50  # steps per compiled call of the check
 
 
 class EnvContractError(ValueError):
@@ -39,21 +41,28 @@ class EnvContractError(ValueError):
         super().__init__("env breaks the envs_mjx contract:\n  - " + "\n  - ".join(self.problems))
 
 
-def check_env(env: Any, num_envs: int = 8, steps: int = 50, seed: int = 0) -> None:
+def check_env(env: Any, num_envs: int = 8, steps: Optional[int] = None, seed: int = 0) -> None:
     """Raises `EnvContractError` naming every broken rule; returns None if there is none."""
     problems = violations(env, num_envs=num_envs, steps=steps, seed=seed)
     if problems:
         raise EnvContractError(problems)
 
 
-def violations(env: Any, num_envs: int = 8, steps: int = 50, seed: int = 0) -> list[str]:
-    """Every broken rule of the contract, one message each (empty: the env conforms)."""
+def violations(env: Any, num_envs: int = 8, steps: Optional[int] = None, seed: int = 0) -> list[str]:
+    """Every broken rule of the contract, one message each (empty: the env conforms).
+
+    `steps`: how many steps the batch takes; default one whole episode (the env's `episode_length`, at least
+    `MIN_STEPS`), so a fault that appears late in an episode is seen before training, not hours into it.
+    """
     found = _Found()
     sizes = _sizes(env, found)
     if sizes is None:
         return found.messages()
     num_stages, obs_size, action_size = sizes
-    reset, step = jax.jit(jax.vmap(env.reset)), jax.jit(jax.vmap(env.step))
+    episode_length = getattr(env, "episode_length", None)
+    if steps is None:
+        steps = max(MIN_STEPS, episode_length if isinstance(episode_length, (int, np.integer)) else 0)
+    reset = jax.jit(jax.vmap(env.reset))
     key = jax.random.PRNGKey(seed)
     key, k_reset = jax.random.split(key)
     try:
@@ -64,7 +73,7 @@ def violations(env: Any, num_envs: int = 8, steps: int = 50, seed: int = 0) -> l
     if not _layout(state, "reset", num_stages, obs_size, found):
         return found.messages()
     host = _host(state)
-    _values(host, "reset", num_stages, found, getattr(env, "episode_length", None))
+    _values(host, "reset", num_stages, found, episode_length)
     for env_i in np.flatnonzero(host["steps"] != 0)[:1]:
         found.add("info['steps'] is not 0 after reset", f"env {env_i}: {host['steps'][env_i]}")
     for env_i in np.flatnonzero(host["done"] != 0)[:1]:
@@ -72,35 +81,61 @@ def violations(env: Any, num_envs: int = 8, steps: int = 50, seed: int = 0) -> l
 
     actions = jax.ShapeDtypeStruct((num_envs, action_size), jnp.float32)
     try:
-        shape_after = jax.eval_shape(step, state, actions)
+        shape_after = jax.eval_shape(jax.vmap(env.step), state, actions)
     except Exception as err:
         found.add("step fails under jit(vmap)", f"{type(err).__name__}: {_first_line(err)}")
         return found.messages()
+    zeros = jax.tree.map(lambda x: np.zeros(x.shape, x.dtype), shape_after)
+    if not _layout(zeros, "step 1", num_stages, obs_size, found):
+        return found.messages()
     # lax.scan (the trainer's collection loop) needs the carry's structure, shapes and
-    # dtypes to be the same before and after a step.
+    # dtypes to be the same before and after a step; without, the check steps without resetting.
     same = _same_structure(jax.eval_shape(lambda s: s, state), shape_after, found)
-    select = jax.jit(_where_done) if same else None
-
-    for t in range(1, steps + 1):
-        key, k_act, k_reset = jax.random.split(key, 3)
-        a = jax.random.uniform(k_act, (num_envs, action_size), jnp.float32, -1.0, 1.0)
+    chunk = _chunk(env, num_envs, action_size, min(steps, CHUNK), reset=same)
+    for first in range(1, steps + 1, CHUNK):
+        key, k_chunk = jax.random.split(key)
         try:
-            nxt = step(state, a)
+            state, (before, after) = chunk(state, k_chunk)
         except Exception as err:
-            found.add("step fails under jit(vmap)", f"step {t}: {type(err).__name__}: {_first_line(err)}")
+            found.add("step fails under jit(vmap)", f"steps {first}-{first + CHUNK - 1}: {type(err).__name__}: "
+                                                    f"{_first_line(err)}")
             break
-        where = f"step {t}"
-        if t == 1 and not _layout(nxt, where, num_stages, obs_size, found):
-            break
-        new = _host(nxt)
-        _values(new, where, num_stages, found, getattr(env, "episode_length", None))
-        _transition(host, new, where, found)
-        if select is None:  # cannot reset part of the batch; keep stepping the finished envs
-            state, host = nxt, new
-            continue
-        state = select(nxt.done, reset(jax.random.split(k_reset, num_envs)), nxt)
-        host = _host(state)
+        before, after = _host(before), _host(after)
+        for i in range(min(CHUNK, steps - first + 1)):
+            new = {k: v[i] for k, v in before.items()}
+            where = f"step {first + i}"
+            _values(new, where, num_stages, found, episode_length)
+            _transition(host, new, where, found)
+            host = {k: v[i] for k, v in after.items()}
     return found.messages()
+
+
+def _chunk(env: Any, num_envs: int, action_size: int, length: int, reset: bool):
+    """A jitted function: `length` steps of the batch from `state` with uniform random actions in [-1, 1],
+    resetting the envs whose episode ended (as the trainer does) when `reset`. Returns the last state and each
+    step's contract fields before and after the reset (leaves [length, num_envs, ...]): one call, not one per
+    step, when the env's states can be scanned."""
+
+    def one(state: Any, key: jax.Array) -> tuple[Any, tuple[Any, Any]]:
+        k_act, k_reset = jax.random.split(key)
+        nxt = jax.vmap(env.step)(state, jax.random.uniform(k_act, (num_envs, action_size), jnp.float32, -1.0, 1.0))
+        if not reset:
+            return nxt, (_contract(nxt), _contract(nxt))
+        after = _where_done(nxt.done, jax.vmap(env.reset)(jax.random.split(k_reset, num_envs)), nxt)
+        return after, (_contract(nxt), _contract(after))
+
+    if reset:
+        return jax.jit(lambda state, key: jax.lax.scan(one, state, jax.random.split(key, length)))
+    step = jax.jit(one)
+
+    def unrolled(state: Any, key: jax.Array) -> tuple[Any, tuple[Any, Any]]:  # lax.scan needs equal structures
+        outs = []
+        for k in jax.random.split(key, length):
+            state, out = step(state, k)
+            outs.append(out)
+        return state, jax.tree.map(lambda *x: jnp.stack(x), *outs)
+
+    return unrolled
 
 
 class _Found:
@@ -167,12 +202,16 @@ def _layout(state: Any, where: str, num_stages: int, obs_size: int, found: _Foun
     return complete
 
 
-def _host(state: Any) -> dict[str, np.ndarray]:
-    """The contract fields of a batched state as numpy arrays."""
-    leaves = jax.device_get({path: _get(state, path) for path, _, _ in _FIELDS})
+def _contract(state: Any) -> dict[str, jax.Array]:
+    """The contract fields of a (batched) state, by their short names."""
     short = {"info['stage']": "stage", "info['rewards']": "rewards", "info['truncation']": "truncation",
              "info['steps']": "steps", "metrics['success']": "success"}
-    return {short.get(k, k): np.asarray(v) for k, v in leaves.items()}
+    return {short.get(path, path): _get(state, path) for path, _, _ in _FIELDS}
+
+
+def _host(fields: Any) -> dict[str, np.ndarray]:
+    """The contract fields of a batched state (or those `_contract` took from it) as numpy arrays."""
+    return {k: np.asarray(v) for k, v in jax.device_get(fields if isinstance(fields, dict) else _contract(fields)).items()}
 
 
 def _first(found: _Found, rule: str, bad: np.ndarray, where: str, show) -> None:

@@ -141,6 +141,15 @@ def test_rejects_broken_rule(case):
     assert isinstance(err.value, ValueError) and err.value.problems == problems
 
 
+def test_checks_one_whole_episode_by_default():
+    """A check of 50 steps passed an env whose observations turn NaN at step 70 of its 100-step episodes."""
+    from user_env_module import make_late_nan
+
+    assert violations(make_late_nan(), steps=50) == []
+    (problem,) = violations(make_late_nan())
+    assert problem.startswith("obs not finite (step 70, env 0: [nan")
+
+
 def test_rejects_missing_sizes():
     class NoSizes:
         def reset(self, rng):  # pragma: no cover - never reached
@@ -292,6 +301,12 @@ def test_train_cli_with_user_env(tmp_path):
     ("user_env_module:make_broken", "env: user_env_module:make_broken is refused: env breaks the envs_mjx contract"),
     ("user_env_module:missing", "env: module 'user_env_module' has no factory 'missing'"),
     ("no_such_module_here:make", "env: cannot import 'no_such_module_here'"),
+    ("user_env_module:make_raising",
+     "env: the factory 'user_env_module:make_raising' raised RuntimeError: no licence for the simulator"),
+    ("user_env_module:not_a_factory", "env: 'user_env_module:not_a_factory': user_env_module.not_a_factory is a "
+                                      "int, not a factory"),
+    ("user_env_module:make_late_nan", "env: user_env_module:make_late_nan is refused: env breaks the envs_mjx "
+                                      "contract:\n  - obs not finite (step 70"),
 ])
 def test_train_cli_refuses_bad_user_env_before_writing(tmp_path, env, message):
     from ccp_jax import ConfigError, train

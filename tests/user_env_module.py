@@ -63,3 +63,24 @@ class _StageSkipping(StageWrapper):
 def make_broken() -> StageWrapper:
     """A factory whose env the CLI must refuse before compiling anything."""
     return _StageSkipping(Slider(), SPEC, episode_length=50)
+
+
+class _LateNaN(StageWrapper):
+    """Its observations turn NaN from the 70th step of an episode on: a fault only a whole episode shows."""
+
+    def step(self, state: State, action: jax.Array) -> State:
+        state = super().step(state, action)
+        return state.replace(obs=jnp.where(state.info["steps"] >= 70, jnp.nan, state.obs))
+
+
+def make_late_nan() -> StageWrapper:
+    """Breaks the contract at step 70 of its 100-step episodes."""
+    return _LateNaN(Slider(), SPEC, episode_length=100)
+
+
+def make_raising() -> StageWrapper:
+    """A factory whose own code fails."""
+    raise RuntimeError("no licence for the simulator")
+
+
+not_a_factory = 42
