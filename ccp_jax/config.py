@@ -68,6 +68,18 @@ def _choice(section: Any, name: str, choices: Sequence[str], what: str) -> None:
         raise ConfigError(name, f"unknown {what} {getattr(section, name)!r}; choose one of {tuple(choices)}")
 
 
+def _finite(section: Any) -> None:
+    """Every real number of a section, alone or in a tuple, is finite: nan and inf slip past `<=` checks.
+
+    The grid's ratio vectors (tuples of tuples) are checked with their own rule in `Config._check_ratios`.
+    """
+    for field in dataclasses.fields(section):
+        value = getattr(section, field.name)
+        for x in value if isinstance(value, tuple) else (value,):
+            if isinstance(x, (float, np.floating)) and not math.isfinite(x):
+                raise ConfigError(field.name, f"must be a finite number, got {value!r}")
+
+
 def _boolean(section: Any, name: str) -> None:
     if not isinstance(getattr(section, name), bool):
         raise ConfigError(name, f"must be true or false, got {getattr(section, name)!r}")
@@ -520,6 +532,8 @@ class Config:
     # --------------------------------------------------------------- validation
     def _check(self) -> None:
         """Each section's own checks, then those across sections."""
+        for name in SECTIONS:
+            _finite(getattr(self, name))
         self.task.check()
         _choice(self, "algo", ALGOS, "algo")
         self.grid.check()

@@ -43,13 +43,18 @@ def scalars(row: dict) -> dict[str, float]:
 
 
 class TensorBoardLogger:
-    """One tensorboardX writer per grid member, writing to OUT/tb/member_K (step = env_steps)."""
+    """One tensorboardX writer per grid member, writing to OUT/tb/member_K (step = env_steps).
 
-    def __init__(self, out: Path, config: Config):
+    `purge_step`: on resume, the first env step trained again; TensorBoard hides the points the run logged from
+    there before it stopped, so the epochs trained again after a resume are not drawn twice.
+    """
+
+    def __init__(self, out: Path, config: Config, purge_step: Optional[int] = None):
         from tensorboardX import SummaryWriter  # imported here: only runs that log need it
 
         eta, seed = config.grid_arrays()
-        self.writers = [SummaryWriter(logdir=str(Path(out) / "tb" / f"member_{k}")) for k in range(config.grid_size)]
+        self.writers = [SummaryWriter(logdir=str(Path(out) / "tb" / f"member_{k}"), purge_step=purge_step)
+                        for k in range(config.grid_size)]
         for k, writer in enumerate(self.writers):
             writer.add_text("member",
                             f"algo {config.algo}, env {config.task.env}, eta {eta[k].tolist()}, seed {seed[k]}")
@@ -104,14 +109,16 @@ class Loggers:
             sink.close()
 
 
-def make_loggers(out: Path, config: Config, tensorboard: bool = True, wandb_project: Optional[str] = None) -> Loggers:
+def make_loggers(out: Path, config: Config, tensorboard: bool = True, wandb_project: Optional[str] = None,
+                 purge_step: Optional[int] = None) -> Loggers:
     """The sinks asked for (possibly none). W&B is used only when `wandb_project` is given;
-    asking for it without the `wandb` package raises ImportError before anything is trained."""
+    asking for it without the `wandb` package raises ImportError before anything is trained.
+    `purge_step`: see `TensorBoardLogger`."""
     if wandb_project is not None and importlib.util.find_spec("wandb") is None:
         raise ImportError("wandb_project was given but wandb is not installed: pip install wandb")
     sinks: list[Sink] = []
     if tensorboard:
-        sinks.append(TensorBoardLogger(out, config))
+        sinks.append(TensorBoardLogger(out, config, purge_step))
     if wandb_project is not None:
         sinks.append(WandbLogger(out, config, wandb_project))
     return Loggers(sinks)

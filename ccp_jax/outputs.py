@@ -10,7 +10,7 @@ import json
 import math
 import os
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any, Iterable, Optional
 
 import numpy as np
 
@@ -171,10 +171,14 @@ def read_rows(path: Path, field: str = "run_dir") -> list[dict]:
     """The rows of a jsonl file (or of its gzip, `PATH.gz`, where PATH itself is not there); a last line without its
     newline is a row still being written and is left out.
 
-    A damaged complete line is a ConfigError naming `field` (the argument that gave the folder) and the line."""
+    A missing file or a damaged complete line is a ConfigError naming `field` (the argument that gave the folder)
+    and the file (and the line)."""
     path = Path(path)
     if path.suffix != ".gz" and not path.exists() and (compacted := path.with_name(path.name + ".gz")).exists():
         path = compacted
+    if not path.is_file():
+        raise ConfigError(field, f"{path.parent} has no {path.name}: not a run folder, or its metrics were deleted "
+                                 "(restore them; a run cannot continue without the rows of its earlier epochs)")
     return _parse_rows(_decode(path.read_bytes(), path, field), path, field)
 
 
@@ -295,6 +299,7 @@ def summarise(config: Config, rows: list[dict], wall_s: float | None = None) -> 
             "best_success": max(success, default=math.nan),
             "first_success_env_steps": first,
             **critic_peaks(mine, DIVERGED * config.value_bound),
+            **first_divergence(mine, config.value_bound),
         })
     return {"final_window_epochs": FINAL_WINDOW, "q_bound": config.value_bound, "wall_s": wall_s, "members": members}
 
@@ -314,6 +319,40 @@ def critic_peaks(rows: list[dict], limit: float) -> dict:
                                           if any(_above(q, limit) for q in r["q_max"])), None)}
 
 
+def divergence(row: dict, bound: float) -> Optional[str]:
+    """Why one epoch's row of a member shows a diverged learner, or None for a healthy one.
+
+    Diverged: a critic above `DIVERGED` × `bound` (the value its rewards allow); a critic loss above
+    (2 `DIVERGED` `bound`)², which a squared TD error reaches only with a prediction or target beyond that limit
+    (a runaway actor drives the targets' −α log π there while the critic's own values look sane); or a loss,
+    temperature or log-probability that is not finite. Rows without learner values (TP's) are healthy.
+    """
+    limit = DIVERGED * bound
+    for n, q in enumerate(row.get("q_max") or ()):
+        if _above(q, limit):
+            return _beyond(f"agent {n}'s critic", q, f"{limit:,.0f} ({DIVERGED:g} x the {bound:g} its rewards allow)")
+    for n, loss in enumerate(row.get("q_loss") or ()):
+        if _above(loss, (2 * limit) ** 2):
+            return _beyond(f"agent {n}'s critic loss", loss, f"{(2 * limit) ** 2:,.0f}")
+    for name in ("pi_loss", "alpha", "log_prob"):
+        for n, x in enumerate(row.get(name) or ()):
+            if x is None or not math.isfinite(x):
+                return f"agent {n}'s {name} is not finite"
+    return None
+
+
+def first_divergence(rows: list[dict], bound: float) -> dict:
+    """`diverged_env_steps`: the env steps of a member's first epoch (`rows`, in order) that `divergence` flags,
+    and `diverged`: its reason; both None for a healthy member."""
+    found = next(((r["env_steps"], why) for r in rows if (why := divergence(r, bound))), (None, None))
+    return {"diverged_env_steps": found[0], "diverged": found[1]}
+
+
+def _beyond(what: str, x: Optional[float], limit: str) -> str:
+    """"what reached x, above limit", or "what is not finite" (None: a non-finite value once written)."""
+    return f"{what} is not finite" if x is None or not math.isfinite(x) else f"{what} reached {x:.3g}, above {limit}"
+
+
 def _above(q: float, limit: float) -> bool:
     """Whether a critic value is above `limit`; NaN (None once written) counts as above."""
     return q is None or not q <= limit
@@ -325,7 +364,7 @@ def eta_text(eta: list) -> str:
 
 
 def summary_table(summary: dict) -> str:
-    """A plain-text table of the summary, one line per member; then a warning per member with a diverged critic."""
+    """A plain-text table of the summary, one line per member; then a warning per diverged member."""
     lines = [f"{'member':>6}  {'algo':<5}  {'eta':<14}  {'seed':>4}  {'final success':>13}  "
              f"{'final return':>12}  {'first success at':>16}"]
     for m in summary["members"]:
@@ -334,10 +373,17 @@ def summary_table(summary: dict) -> str:
         lines.append(f"{m['member']:>6}  {m['algo']:<5}  {eta:<14}  {m['seed']:>4}  {m['final_success']:>13.2f}  "
                      f"{m['final_return']:>12.1f}  {first:>16}")
     for m in summary["members"]:
-        if m.get("q_diverged_env_steps") is not None:
+        if m.get("diverged_env_steps") is not None:
+            lines.append(diverged_warning(m["member"], m["seed"], m["diverged_env_steps"], m["diverged"]))
+        elif m.get("q_diverged_env_steps") is not None:  # a summary written before the loss checks
             limit = DIVERGED * summary["q_bound"]
-            peaks = ", ".join(f"agent {n}'s at {q:,.0f}" for n, q in enumerate(m["q_peak"]) if _above(q, limit))
-            lines.append(f"warning: member {m['member']} (seed {m['seed']}) has a diverged critic: {peaks}, above "
-                         f"{limit:,.0f} ({DIVERGED:g} x the {summary['q_bound']:g} its rewards allow) from "
-                         f"{m['q_diverged_env_steps']:,} env steps (per epoch: q_max in metrics.jsonl)")
+            peaks = [_beyond(f"agent {n}'s critic", q, f"{limit:,.0f}")
+                     for n, q in enumerate(m["q_peak"]) if _above(q, limit)]
+            lines.append(diverged_warning(m["member"], m["seed"], m["q_diverged_env_steps"], "; ".join(peaks)))
     return "\n".join(lines)
+
+
+def diverged_warning(member: int, seed: int, env_steps: int, why: str) -> str:
+    """The line that reports a diverged member, during training and under the final table."""
+    return (f"warning: member {member} (seed {seed}) diverged at {env_steps:,} env steps: {why}; it trains on with "
+            "the grid, but its results are not meaningful (per epoch: q_max, q_loss in metrics.jsonl)")

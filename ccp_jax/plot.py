@@ -20,7 +20,7 @@ from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter
 
 from ccp_jax import outputs
-from ccp_jax.config import Config
+from ccp_jax.config import Config, ConfigError
 
 # Config fields that say which members a run holds and how long it trains, not what it trains.
 GRID_FIELDS = ("etas", "seeds", "total_steps")
@@ -43,12 +43,17 @@ def _value(row: dict, metric: str) -> Optional[float]:
     """The row's `metric`; 'name/k' picks agent k of a per-agent list. None when undefined (η* of the last agent)."""
     name, _, agent = metric.partition("/")
     if name not in row:
-        raise KeyError(f"metric {name!r} is not in metrics.jsonl; it has {sorted(row)}")
+        raise ConfigError("metric", f"{name!r} is not in metrics.jsonl; it has {sorted(row)}")
     value = row[name]
     if isinstance(value, list):
-        if not agent:
-            raise KeyError(f"metric {name!r} is per agent; write {name}/K for agent K (0..{len(value) - 1})")
+        if not (agent.isdigit() and int(agent) < len(value)):
+            raise ConfigError("metric", f"{name!r} is per agent; write {name}/K for agent K "
+                                        f"(0..{len(value) - 1}), got {metric!r}")
         value = value[int(agent)]
+    elif agent:
+        raise ConfigError("metric", f"{name!r} is one number per epoch, not per agent; write {name}, got {metric!r}")
+    if isinstance(value, dict):  # e.g. eval_end: fractions by where episodes end
+        raise ConfigError("metric", f"{name!r} holds {sorted(value)}; it is not a curve")
     return None if value is None else float(value)
 
 

@@ -334,6 +334,27 @@ def resume_config(args: Args) -> Config:
     return config
 
 
+def resume_point(mngr: checkpoint.ocp.CheckpointManager, rows: list[dict], grid_size: int) -> Optional[int]:
+    """The checkpoint a resume starts from: the latest one that the rows of metrics.jsonl reach.
+
+    Rows are written before each checkpoint, so a checkpoint past the complete rows (a row cut by a crash) is
+    trained again from an earlier one, deterministically, into the same checkpoints. Rows that end before the
+    oldest checkpoint (a truncated or replaced file) would leave a hole in the metrics: refused. None when no
+    checkpoint exists (`checkpoint.restore` says what to do).
+    """
+    steps = mngr.all_steps()
+    complete = outputs.complete_epochs(rows, grid_size)
+    if not steps:
+        return None
+    if not (covered := [s for s in steps if s <= complete]):
+        have = f"epochs 1-{complete}" if complete else "no complete epoch"
+        raise ConfigError("resume", f"metrics.jsonl in {Path(mngr.directory).parent} holds {have}, but its oldest "
+                                    f"checkpoint is of epoch {min(steps)}: resuming would leave epochs "
+                                    f"{complete + 1}-{min(steps)} without metrics. Restore the metrics file, or "
+                                    "start the run again with another --out")
+    return max(covered)
+
+
 def run(config: Config, out: Path, progress: bool = True, resume: bool = False,
         checkpoint_every: int = 10, tensorboard: bool = True, wandb_project: Optional[str] = None,
         members_at_once: Optional[int] = None, devices: Optional[list] = None) -> dict:
@@ -346,32 +367,34 @@ def run(config: Config, out: Path, progress: bool = True, resume: bool = False,
     than its checkpoint's (`checkpoint.restore` pads the grid anew).
     Returns the summary (per member: final success = mean of the last 10 epochs).
     """
-    sinks = loggers.make_loggers(out, config, tensorboard, wandb_project)  # fails before compiling
+    # A refused resume (damaged rows, a hole before the checkpoints) stops here: before compiling or logging.
+    rows = outputs.read_rows(out / outputs.METRICS, field="resume") if resume else []
+    mngr = checkpoint.manager(out)
+    resume_epoch = resume_point(mngr, rows, config.grid_size) if resume else None
+    # TensorBoard hides the points a crashed run logged past the checkpoint it resumes from (trained again).
+    restart = next((r["env_steps"] for r in rows if r["epoch"] == resume_epoch), None)
+    sinks = loggers.make_loggers(out, config, tensorboard, wandb_project, purge_step=restart and restart + 1)
     try:
-        return _train(config, out, progress, resume, checkpoint_every, sinks, members_at_once,
-                      devices or grid_devices(config.grid_size))
+        return _train(config, out, progress, resume, rows, mngr, resume_epoch, checkpoint_every, sinks,
+                      members_at_once, devices or grid_devices(config.grid_size))
     finally:
         sinks.close()
 
 
-def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_every: int,
+def _train(config: Config, out: Path, progress: bool, resume: bool, rows: list[dict],
+           mngr: checkpoint.ocp.CheckpointManager, resume_epoch: Optional[int], checkpoint_every: int,
            sinks: loggers.Loggers, members_at_once: Optional[int], devices: list) -> dict:
-    metrics_path = out / "metrics.jsonl"
-    rows = outputs.read_rows(metrics_path, field="resume") if resume else []  # a damaged file stops us before tracing
+    """`run` once the folder is checked; when resuming, `rows` so far and the checkpoint to start from."""
+    metrics_path = out / outputs.METRICS
     env = make_env(config)
     make = make_tp_grid if config.algo == "tp" else make_grid_train
     trainer = make(config, env, devices, members_at_once=members_at_once)
     eta, seed = config.grid_arrays()
     lead = jax.process_index() == 0  # with several hosts, one writes the files; all save checkpoints
-    mngr = checkpoint.manager(out)
     start = time.time()
     if resume:
-        # Rows are written before each checkpoint; a checkpoint past the rows that survived (a row cut by a
-        # crash) would leave a hole in metrics.jsonl, so resume from the latest one they cover and train the
-        # later epochs again (deterministically, into the same checkpoints).
-        covered = [s for s in mngr.all_steps() if s <= outputs.complete_epochs(rows, config.grid_size)]
         first_epoch, state = checkpoint.restore(mngr, trainer.abstract_state(seed), grid_size=config.grid_size,
-                                                epoch=max(covered) if covered else None,
+                                                epoch=resume_epoch,
                                                 defaults=lambda: trainer.init(seed))  # for fields added since
         if first_epoch > config.num_epochs:
             raise ConfigError("total_steps", f"the run already has {first_epoch} epochs, more than {config.num_epochs}")
@@ -393,6 +416,8 @@ def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_e
                disable=not (progress and lead), dynamic_ncols=True)
     # The first epoch includes compiling it: say so, as MJX envs on a CPU compile for minutes.
     bar.set_postfix_str("compiling the epoch program (once)")
+    # Members whose earlier epochs already diverged were reported then (the summary says it again).
+    diverged = {r["member"] for r in rows if outputs.divergence(r, config.value_bound)}
     for epoch in bar:
         t0 = time.time()
         state, metrics = trainer.train_step(state, eta)
@@ -402,6 +427,11 @@ def _train(config: Config, out: Path, progress: bool, resume: bool, checkpoint_e
             outputs.append_rows(metrics_path, epoch_rows)
             sinks.write(epoch_rows)
         rows.extend(epoch_rows)
+        for row in epoch_rows:  # said as it happens: a grid can train on for hours after one member diverges
+            if row["member"] not in diverged and (why := outputs.divergence(row, config.value_bound)):
+                diverged.add(row["member"])
+                if lead:
+                    bar.write(outputs.diverged_warning(row["member"], row["seed"], row["env_steps"], why))
         if epoch + 1 == config.num_epochs or (checkpoint_every and (epoch + 1) % checkpoint_every == 0):
             checkpoint.save(mngr, epoch + 1, state)
         success = np.asarray(metrics.eval.success_rate)

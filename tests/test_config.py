@@ -1,4 +1,6 @@
 """Bad input fails fast, naming the field; presets and the grid resolve as documented."""
+import math
+
 import pytest
 
 from ccp_jax.config import ConfigError, make_config
@@ -250,3 +252,11 @@ def test_a_budget_of_part_of_an_epoch_is_refused_with_the_nearest_whole_ones():
                                           r"use 200 or 400$"):
         make_config("tiny", total_steps=250)
     assert make_config("tiny", total_steps=400).num_epochs == 2
+
+
+@pytest.mark.parametrize("name, value", [("actor_lr", math.nan), ("critic_lr", math.inf), ("norm_floor", math.nan),
+                                         ("initial_alpha", -math.inf), ("eta_auto_range", (0.0, math.nan))])
+def test_non_finite_numbers_are_refused_by_name(name, value):
+    """nan slips past `x <= 0` checks: `--actor-lr nan` used to train, every loss nan, and exit 0."""
+    with pytest.raises(ConfigError, match=rf"^{name}: .*finite"):
+        make_config("tiny", **{name: value})

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import importlib.machinery
 import json
+import re
 import struct
 import subprocess
 import sys
@@ -16,7 +17,7 @@ import numpy as np
 import pytest
 
 from ccp_jax import evaluate, loggers, outputs, plot, render
-from ccp_jax.config import Config
+from ccp_jax.config import Config, ConfigError
 from ccp_jax.train import main as train_main
 from envs_mjx.maze import Maze
 from toy_env import Line  # tests/ is on sys.path (conftest)
@@ -55,6 +56,11 @@ def test_plot_per_agent_metric_and_bad_metric(run_dir, tmp_path):
         plot.main([str(run_dir), "--metric", "q_loss"])  # per-agent without an agent index
     with pytest.raises(SystemExit):
         plot.main([str(run_dir), "--metric", "no_such_metric"])
+    for metric, message in [("q_loss/5", "'q_loss' is per agent; write q_loss/K for agent K (0..1), got 'q_loss/5'"),
+                            ("success_rate/1", "'success_rate' is one number per epoch, not per agent"),
+                            ("eval_end", "'eval_end' holds ['pocket']; it is not a curve")]:
+        with pytest.raises(ConfigError, match=re.escape(f"metric: {message}")):  # was an IndexError for q_loss/5
+            plot.load_curves([run_dir], metric)
 
 
 def test_stage_fraction_plot_is_labelled_by_stage_and_spans_fractions(run_dir):

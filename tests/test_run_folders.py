@@ -58,3 +58,73 @@ def test_resume_keeps_the_checkpoint_interval_the_run_started_with(tmp_path):
     mngr = checkpoint.manager(out)
     assert mngr.all_steps() == [5, 6]  # every epoch checkpointed (2 kept); with an interval of 10 only 6
     mngr.close()
+
+
+@pytest.fixture(scope="module")
+def finished(tmp_path_factory):
+    """A tiny run of 5 epochs of 200 steps, checkpointed every epoch (the last 2 kept: 4 and 5), with TensorBoard."""
+    out = tmp_path_factory.mktemp("runs") / "finished"
+    main(["--preset", "tiny", "--no-progress", "--total-steps", "1000", "--checkpoint-every", "1", "--out", str(out)])
+    return out
+
+
+def _copy(run, tmp_path, keep_rows=None):
+    copy = tmp_path / "run"
+    shutil.copytree(run, copy)
+    if keep_rows is not None:
+        lines = (copy / "metrics.jsonl").read_text().splitlines(keepends=True)
+        (copy / "metrics.jsonl").write_text("".join(lines[:keep_rows]))
+    return copy
+
+
+def _events(run):
+    return sorted(p.name for p in (run / "tb").rglob("events.*"))
+
+
+def test_resume_past_a_hole_in_the_metrics_is_refused(finished, tmp_path):
+    """Rows ending before the oldest checkpoint used to resume from the latest one and exit 0, epochs missing."""
+    run = _copy(finished, tmp_path, keep_rows=2)  # epochs 1-2 of 5; checkpoints 4 and 5
+    events = _events(run)
+    with pytest.raises(ConfigError, match=r"^resume: metrics.jsonl in .* holds epochs 1-2, but its oldest "
+                                          r"checkpoint is of epoch 4: resuming would leave epochs 3-4 without"):
+        main(["--resume", str(run), "--no-progress"])
+    assert _events(run) == events  # a refused resume logs nothing
+    assert checkpoint.manager(run).all_steps() == [4, 5]
+
+
+def test_resume_with_its_metrics_deleted_is_refused(finished, tmp_path):
+    run = _copy(finished, tmp_path)
+    (run / "metrics.jsonl").unlink()
+    with pytest.raises(ConfigError, match=r"^resume: .*run has no metrics.jsonl: not a run folder, or its "
+                                          r"metrics were deleted"):
+        main(TINY + ["--resume", str(run)])
+
+
+def test_epochs_trained_again_after_a_resume_are_hidden_in_tensorboard(finished, tmp_path):
+    """A run stopped after epoch 5's row but before a checkpoint covering it trains epoch 5 again from
+    checkpoint 4; TensorBoard purges the first run's points from that step on instead of drawing them twice."""
+    run = _copy(finished, tmp_path, keep_rows=4)
+    main(["--resume", str(run), "--no-progress"])
+    first, again = sorted((run / "tb" / "member_0").glob("events.*"))
+    restart = 4 * 200 + 1
+    purges = [e.step for e in _read_events(again) if e.HasField("session_log") and e.session_log.status == 1]
+    assert purges == [restart]
+    steps = [e.step for e in _read_events(again) if e.HasField("summary")
+             and e.summary.value[0].tag == "success_rate"]
+    assert steps == [1000]  # epoch 5 logged again, after the purge
+    assert max(e.step for e in _read_events(first) if e.HasField("summary")) == 1000  # the hidden point
+
+
+def _read_events(path):
+    """The events of a TensorBoard event file (TFRecord framing: length, its CRC, the record, its CRC)."""
+    import struct
+
+    from tensorboardX.proto import event_pb2
+
+    data, i = path.read_bytes(), 0
+    while i < len(data):
+        (n,) = struct.unpack("<Q", data[i:i + 8])
+        event = event_pb2.Event()
+        event.ParseFromString(data[i + 12:i + 12 + n])
+        yield event
+        i += 12 + n + 4

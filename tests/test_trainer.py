@@ -1,5 +1,6 @@
 """The trainer end to end: shapes, grid = single runs, determinism, learning, CLI outputs."""
 import json
+import math
 import types
 
 import chex
@@ -219,11 +220,42 @@ def test_summary_flags_a_critic_above_ten_times_the_value_its_rewards_allow():
     assert healthy["q_peak"] == [99.0, 4.0] and healthy["q_diverged_env_steps"] is None
     assert diverged["q_peak"] == [250.0, 101.0] and diverged["q_diverged_env_steps"] == 200  # the first epoch above
     warnings = [line for line in outputs.summary_table(summary).splitlines() if line.startswith("warning")]
-    assert warnings == ["warning: member 1 (seed 1) has a diverged critic: agent 0's at 250, agent 1's at 101, "
-                        "above 100 (10 x the 10 its rewards allow) from 200 env steps (per epoch: q_max in "
-                        "metrics.jsonl)"]
+    assert warnings == ["warning: member 1 (seed 1) diverged at 200 env steps: agent 0's critic reached 250, "
+                        "above 100 (10 x the 10 its rewards allow); it trains on with the grid, but its results are "
+                        "not meaningful (per epoch: q_max, q_loss in metrics.jsonl)"]
+    assert (healthy["diverged_env_steps"], diverged["diverged_env_steps"]) == (None, 200)
     assert outputs.critic_peaks([dict(env_steps=5, q_max=[1.0, float("nan")])], 100.0)["q_diverged_env_steps"] == 5
     assert outputs.critic_peaks([dict(env_steps=5)], 100.0) == {"q_peak": None, "q_diverged_env_steps": None}  # TP
+
+
+def test_a_runaway_actor_is_flagged_by_the_critic_loss_its_targets_drive():
+    """`--actor-lr 1e6`: log π reaches 1e5, so the targets' −α log π and the critic loss explode while the critic's
+    own values stay small; q_max alone never flagged it."""
+    from ccp_jax import outputs
+
+    healthy = dict(env_steps=100, q_max=[9.0, 3.0], q_loss=[0.5, 0.1], pi_loss=[-3.0, -2.0], alpha=[0.2, 0.2],
+                   log_prob=[-1.0, 0.5])
+    assert outputs.divergence(healthy, bound=20.0) is None
+    assert outputs.divergence({**healthy, "q_loss": [0.5, 4.7e11]}, bound=20.0) == \
+        "agent 1's critic loss reached 4.7e+11, above 160,000"
+    assert outputs.divergence({**healthy, "q_loss": [159_999.0, 0.1]}, bound=20.0) is None  # (2 x 10 x 20)^2
+    assert outputs.divergence({**healthy, "log_prob": [None, 0.5]}, bound=20.0) == "agent 0's log_prob is not finite"
+    assert outputs.divergence({**healthy, "pi_loss": [1.0, math.inf]}, bound=20.0) == \
+        "agent 1's pi_loss is not finite"
+    assert outputs.divergence(dict(env_steps=5, success_rate=0.0), bound=20.0) is None  # TP rows: no learner values
+    rows = [healthy, {**healthy, "env_steps": 200, "q_loss": [1e9, 0.1]}, {**healthy, "env_steps": 300}]
+    assert outputs.first_divergence(rows, 20.0) == {"diverged_env_steps": 200,
+                                                    "diverged": "agent 0's critic loss reached 1e+09, above 160,000"}
+
+
+def test_a_member_that_diverges_is_reported_while_training(tmp_path, capsys):
+    from ccp_jax.train import main
+
+    summary = main(["--preset", "tiny", "--actor-lr", "1e6", "--no-progress", "--no-tensorboard",
+                    "--out", str(tmp_path / "run")])
+    assert summary["members"][0]["diverged_env_steps"] == 200
+    out = capsys.readouterr().out
+    assert out.count("warning: member 0 (seed 0) diverged at 200 env steps") == 2  # as it happened, and at the end
 
 
 def test_every_hyperparameter_reaches_the_config_from_the_cli():
