@@ -29,6 +29,26 @@ CPU_DEVICES = "xla_force_host_platform_device_count"  # the XLA flag that splits
 CpuDevices = Union[int, Literal["auto"]]
 
 
+def host_cpu_tag() -> str:
+    """A short name for this host's CPU model and instruction-set features (12 hex digits).
+
+    Compiled CPU programs use every feature of the CPU that compiled them; one loaded on a CPU without them can
+    die of SIGILL. The default compile cache is kept per tag, so a home folder shared by different machines
+    never hands one machine another's programs.
+    """
+    import hashlib
+    import platform
+
+    described = platform.machine() + platform.processor()
+    try:
+        with open("/proc/cpuinfo") as f:
+            lines = f.read().splitlines()
+        described += "".join(sorted({line for line in lines if line.startswith(("model name", "flags", "Features"))}))
+    except OSError:  # not Linux: the machine and processor names alone
+        pass
+    return hashlib.sha1(described.encode()).hexdigest()[:12]
+
+
 def available_cores() -> int:
     """CPU cores this process may run on (its affinity mask where the OS has one)."""
     try:

@@ -33,7 +33,7 @@ from jax.experimental import multihost_utils
 from tqdm.auto import tqdm
 
 from ccp_jax import checkpoint, loggers, outputs
-from ccp_jax.devices import CpuDevices, grid_devices, split_host_cpu
+from ccp_jax.devices import CpuDevices, grid_devices, host_cpu_tag, split_host_cpu
 from ccp_jax.config import (PRESETS, SECTION_OF, SECTIONS, Config, ConfigError, PresetName, make_config,
                              preset_settings)
 from ccp_jax.eta import EtaAutoRule, parse_eta, parse_eta_vector
@@ -89,7 +89,7 @@ class Args:
     progress: bool = True
     """Show a progress bar."""
     compile_cache: bool = True
-    """Keep compiled programs on disk ($JAX_COMPILATION_CACHE_DIR, else ~/.cache/ccp-jax/xla): a run whose grid size and settings were compiled before (other seeds or ratios, a resume) starts without compiling."""
+    """Keep compiled programs on disk ($JAX_COMPILATION_CACHE_DIR, else ~/.cache/ccp-jax/xla/<CPU tag>): a run whose grid size and settings were compiled before (other seeds or ratios, a resume) starts without compiling."""
     tensorboard: bool = True
     """Write TensorBoard event files, one folder per grid member (DIR/tb/member_K)."""
     wandb_project: Optional[str] = None
@@ -449,13 +449,14 @@ def enable_compile_cache() -> Path:
     """Turns on JAX's persistent compilation cache and returns its folder.
 
     A folder the user chose (JAX_COMPILATION_CACHE_DIR or jax.config) is kept;
-    otherwise $XDG_CACHE_HOME/ccp-jax/xla (default ~/.cache). Seeds and ratios
+    otherwise $XDG_CACHE_HOME/ccp-jax/xla/<host CPU tag> (default ~/.cache; one
+    folder per CPU model and feature set, `devices.host_cpu_tag`). Seeds and ratios
     are inputs of the compiled epoch, not constants, so a sweep of other seeds
     or ratios at the same grid size reuses the program. Call before compiling.
     """
     if not jax.config.jax_compilation_cache_dir:
         base = Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache")
-        jax.config.update("jax_compilation_cache_dir", str(base / "ccp-jax" / "xla"))
+        jax.config.update("jax_compilation_cache_dir", str(base / "ccp-jax" / "xla" / host_cpu_tag()))
     return Path(jax.config.jax_compilation_cache_dir)
 
 

@@ -97,9 +97,21 @@ def test_cli_arguments_resolve():
         config_from_args(parse_args(["--eta", "0.1", "--eta-per-agent", "0.1", "--preset", "tiny"]))
 
 
+def test_host_cpu_tag_names_the_cpu_model_and_features(monkeypatch):
+    import platform
+
+    from ccp_jax.devices import host_cpu_tag
+
+    tag = host_cpu_tag()
+    assert len(tag) == 12 and int(tag, 16) >= 0 and host_cpu_tag() == tag
+    monkeypatch.setattr(platform, "machine", lambda: "riscv128")  # another machine, another cache folder
+    assert host_cpu_tag() != tag
+
+
 def test_compile_cache_keeps_the_users_folder_else_uses_xdg_cache(tmp_path, monkeypatch):
     import jax
 
+    from ccp_jax.devices import host_cpu_tag
     from ccp_jax.train import enable_compile_cache
 
     before = jax.config.jax_compilation_cache_dir
@@ -108,8 +120,9 @@ def test_compile_cache_keeps_the_users_folder_else_uses_xdg_cache(tmp_path, monk
         assert enable_compile_cache() == tmp_path / "mine"  # a user's (or the test suite's) choice is kept
         jax.config.update("jax_compilation_cache_dir", None)
         monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
-        assert enable_compile_cache() == tmp_path / "xdg" / "ccp-jax" / "xla"
-        assert jax.config.jax_compilation_cache_dir == str(tmp_path / "xdg" / "ccp-jax" / "xla")
+        mine = tmp_path / "xdg" / "ccp-jax" / "xla" / host_cpu_tag()  # one folder per CPU model and features
+        assert enable_compile_cache() == mine
+        assert jax.config.jax_compilation_cache_dir == str(mine)
     finally:
         jax.config.update("jax_compilation_cache_dir", before)
     assert Args().compile_cache  # on by default in the CLI
