@@ -8,6 +8,8 @@ checkpoint as the latest usable one.
 """
 from __future__ import annotations
 
+import errno
+import sys
 import warnings
 from pathlib import Path
 from typing import Any, Callable
@@ -85,9 +87,14 @@ def save(mngr: ocp.CheckpointManager, epoch: int, state: Any) -> None:
     The actors' parameters are also saved as a small item of their own, so a
     policy can be loaded without reading the replay buffers.
     """
-    mngr.save(epoch, args=ocp.args.Composite(state=ocp.args.StandardSave(_keyed(state)),
-                                             policy=ocp.args.StandardSave(_keyed(state.agents.actor))))
-    mngr.wait_until_finished()
+    try:
+        mngr.save(epoch, args=ocp.args.Composite(state=ocp.args.StandardSave(_keyed(state)),
+                                                 policy=ocp.args.StandardSave(_keyed(state.agents.actor))))
+        mngr.wait_until_finished()
+    except Exception as err:  # TensorStore reports a full disk as a ValueError; say it as the OS would
+        if isinstance(err, OSError) or "RESOURCE_EXHAUSTED" not in str(err):
+            raise
+        raise OSError(errno.ENOSPC, "No space left on device", str(Path(mngr.directory) / str(epoch))) from err
 
 
 def _repadded(saved: np.ndarray, want: Any, grid_size: int) -> Any:
@@ -96,11 +103,35 @@ def _repadded(saved: np.ndarray, want: Any, grid_size: int) -> Any:
     return jax.device_put(pad_grid(saved[:grid_size], want.shape[0]), getattr(want, "sharding", None))
 
 
+def _drop_abandoned_reads() -> None:
+    """When one array of a checkpoint fails to read, orbax abandons its other reads (coroutines), and each prints
+    a page of traceback whenever it is collected, even before the failure reaches us. Installed before the first
+    read: those reports alone are dropped; every other unraisable exception still reaches the previous hook."""
+    previous = sys.unraisablehook
+    if getattr(previous, "drops_abandoned_reads", False):
+        return
+
+    def hook(unraisable: Any) -> None:
+        if getattr(getattr(unraisable.object, "cr_code", None), "co_name", "") != ABANDONED_READ:
+            previous(unraisable)
+
+    hook.drops_abandoned_reads = True
+    sys.unraisablehook = hook
+
+
+ABANDONED_READ = "_read_array_index_and_device_put"  # orbax's coroutine that reads one array
+
+
+class UnreadableCheckpoint(CheckpointError):
+    """A checkpoint's files cannot be read (damaged, cut short); an older checkpoint may still be whole."""
+
+
 def _unreadable(folder: Path, epoch: int, steps, err: Exception) -> CheckpointError:
     earlier = sorted(s for s in steps if s != epoch)
     hint = (f"; earlier checkpoints {earlier} are untouched: move {folder / str(epoch)} away to resume from one"
             if earlier else "")
-    return CheckpointError(f"{folder / str(epoch)} cannot be restored ({type(err).__name__}: {str(err)[:300]}){hint}")
+    cause = (str(err).strip().splitlines() or [""])[0][:200]  # the first line: TensorStore appends pages of spec
+    return UnreadableCheckpoint(f"{folder / str(epoch)} cannot be restored ({type(err).__name__}: {cause}){hint}")
 
 
 def _match(saved: dict[tuple[str, ...], Any], abstract_state: Any, item: str, where: Path, defaults: Any) -> list:
@@ -173,6 +204,7 @@ def restore(mngr: ocp.CheckpointManager, abstract_state: Any, item: str = "state
     # Every saved array is read (orbax restores whole trees); those this state no longer has are dropped.
     restore_as = {k: (np.empty(m.shape, m.dtype) if repad or k not in wanted else wanted[k])
                   for k, m in flat_meta.items()}
+    _drop_abandoned_reads()
     try:
         saved = _flat(mngr.restore(epoch, args=ocp.args.Composite(
             **{item: ocp.args.StandardRestore(_nest(restore_as))}))[item])

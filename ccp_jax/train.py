@@ -15,6 +15,7 @@ if __name__ == "__main__":  # the CLI: MJX's CPU flag and quiet import, before t
 import argparse
 import ast
 import dataclasses
+import errno
 import functools
 import inspect
 import json
@@ -355,6 +356,24 @@ def resume_point(mngr: checkpoint.ocp.CheckpointManager, rows: list[dict], grid_
     return max(covered)
 
 
+def _restore(mngr: checkpoint.ocp.CheckpointManager, trainer: Any, seed: np.ndarray, grid_size: int,
+             epoch: Optional[int], lead: bool) -> tuple[int, Any]:
+    """Checkpoint `epoch` (None: the latest) restored for `trainer`; a damaged one gives way to the next older,
+    which the rows cover too, with a warning (the epochs after it are trained again, deterministically)."""
+    candidates = [epoch, *sorted((s for s in mngr.all_steps() if epoch is not None and s < epoch), reverse=True)]
+    for n, candidate in enumerate(candidates):
+        try:
+            return checkpoint.restore(mngr, trainer.abstract_state(seed), grid_size=grid_size, epoch=candidate,
+                                      defaults=lambda: trainer.init(seed))  # for fields added since
+        except checkpoint.UnreadableCheckpoint as err:
+            if n + 1 == len(candidates):
+                raise
+            if lead:
+                print(f"warning: {str(err).split('; earlier')[0]}; resuming from checkpoint {candidates[n + 1]} "
+                      "instead (the damaged one is replaced)")
+    raise AssertionError("unreachable")
+
+
 def run(config: Config, out: Path, progress: bool = True, resume: bool = False,
         checkpoint_every: int = 10, tensorboard: bool = True, wandb_project: Optional[str] = None,
         members_at_once: Optional[int] = None, devices: Optional[list] = None) -> dict:
@@ -393,9 +412,7 @@ def _train(config: Config, out: Path, progress: bool, resume: bool, rows: list[d
     lead = jax.process_index() == 0  # with several hosts, one writes the files; all save checkpoints
     start = time.time()
     if resume:
-        first_epoch, state = checkpoint.restore(mngr, trainer.abstract_state(seed), grid_size=config.grid_size,
-                                                epoch=resume_epoch,
-                                                defaults=lambda: trainer.init(seed))  # for fields added since
+        first_epoch, state = _restore(mngr, trainer, seed, config.grid_size, resume_epoch, lead)
         if first_epoch > config.num_epochs:
             raise ConfigError("total_steps", f"the run already has {first_epoch} epochs, more than {config.num_epochs}")
         for later in [s for s in mngr.all_steps() if s > first_epoch]:  # only once the covered one restored
@@ -489,6 +506,8 @@ def main(argv: Optional[list[str]] = None) -> dict:
         config = config_from_args(args)
         out = prepare_out(args.out, config)
         every = DEFAULT_CHECKPOINT_EVERY if args.checkpoint_every is None else args.checkpoint_every
+    if jax.process_count() > 1:  # every host checks the folder before any host writes to it
+        multihost_utils.sync_global_devices("run folder checked")
     devices = grid_devices(config.grid_size)
     print(f"{'Resuming' if args.resume else 'Training'} {config.grid_size} run(s) of {config.algo} on "
           f"{config.task.env} ({config.num_stages} stages, {config.num_epochs} epochs of {config.budget.steps_per_epoch} steps) on "
@@ -507,6 +526,12 @@ def cli() -> None:
         main()
     except ConfigError as err:
         raise SystemExit(f"error: {err}") from None
+    except OSError as err:
+        if err.errno != errno.ENOSPC:
+            raise
+        raise SystemExit(f"error: out: no space left on the device ({err.filename or 'writing the run'}); the "
+                         "folder keeps its last checkpoint: free space (or move the folder), then continue it with "
+                         "--resume") from None
 
 
 if __name__ == "__main__":

@@ -1,6 +1,7 @@
 """A run folder is a complete run, a resumable run, or refused with the way out named: never mixed with another
 run's files. Every refusal here comes before anything is traced or compiled."""
 import shutil
+import types
 
 import pytest
 
@@ -128,3 +129,45 @@ def _read_events(path):
         event.ParseFromString(data[i + 12:i + 12 + n])
         yield event
         i += 12 + n + 4
+
+
+def test_a_damaged_newest_checkpoint_gives_way_to_the_older_one(finished, tmp_path, capsys):
+    """Its bytes overwritten, checkpoint 5 cannot be read: the resume warns, restores checkpoint 4 and trains
+    epoch 5 again, to the rows of the undamaged run."""
+    run = _copy(finished, tmp_path)
+    biggest = max((p for p in (run / "checkpoints" / "5" / "state").rglob("*") if p.is_file()),
+                  key=lambda p: p.stat().st_size)
+    data = bytearray(biggest.read_bytes())
+    data[len(data) // 3: 2 * len(data) // 3] = bytes(len(data[len(data) // 3: 2 * len(data) // 3]))
+    biggest.write_bytes(bytes(data))
+    main(["--resume", str(run), "--no-progress", "--no-tensorboard"])
+    assert "/checkpoints/5 cannot be restored" in capsys.readouterr().out
+    strip = lambda path: [line.split(', "epoch_wall_s"')[0] for line in path.read_text().splitlines()]  # noqa: E731
+    assert strip(run / "metrics.jsonl") == strip(finished / "metrics.jsonl")
+    assert checkpoint.manager(run).all_steps() == [4, 5]
+
+
+def test_a_full_disk_is_said_with_the_way_out(monkeypatch, capsys):
+    """TensorStore reports a full disk as a ValueError deep in orbax; the CLI says it in one line."""
+    import errno
+
+    from ccp_jax import train
+
+    class Full:
+        directory = "/runs/x/checkpoints"
+
+        def save(self, *args, **kwargs):
+            raise ValueError('RESOURCE_EXHAUSTED: Failed writing: "/runs/x/checkpoints/4.orbax-checkpoint-tmp"')
+
+    monkeypatch.setattr(checkpoint, "_keyed", lambda tree: {})  # the state never reaches the full disk
+    with pytest.raises(OSError) as err:
+        checkpoint.save(Full(), 4, state=types.SimpleNamespace(agents=types.SimpleNamespace(actor=None)))
+    assert err.value.errno == errno.ENOSPC and err.value.filename == "/runs/x/checkpoints/4"
+
+    def full(argv=None):
+        raise err.value
+
+    monkeypatch.setattr(train, "main", full)
+    with pytest.raises(SystemExit, match=r"^error: out: no space left on the device \(/runs/x/checkpoints/4\); "
+                                         r"the folder keeps its last checkpoint: free space .* --resume"):
+        train.cli()
