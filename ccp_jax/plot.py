@@ -305,9 +305,11 @@ def lineage(data: Lineage, title: Optional[str] = None) -> Figure:
     if members <= 12:
         axes[0].legend(fontsize="x-small", ncol=2)
     tree = axes[-1]
+    # During epoch e a member carries the line it held before that epoch's copy.
+    carried = np.concatenate([np.arange(members)[None], founders[:-1]])
     for m in range(members):
         for e in range(len(steps)):
-            tree.plot(edges[e:e + 2], [m, m], color=color(founders[e, m]), linewidth=4, solid_capstyle="butt")
+            tree.plot(edges[e:e + 2], [m, m], color=color(carried[e, m]), linewidth=4, solid_capstyle="butt")
             if data.parent[e, m] >= 0:
                 tree.annotate("", xy=(steps[e], m), xytext=(steps[e], data.parent[e, m]),
                               arrowprops=dict(arrowstyle="->", color=color(founders[e, m]), linewidth=1))

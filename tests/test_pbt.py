@@ -175,6 +175,13 @@ def test_a_pbt_run_writes_its_lineage(cli_run):
     assert founders.shape == (3, 4) and set(founders.ravel()) <= {0, 1, 2, 3}
 
 
+def test_a_copy_carries_its_donors_founder():
+    # Epoch 1: member 2 copies 0; epoch 2: member 1 copies 2 (now 0's line); epoch 3: nothing.
+    parent = np.array([[-1, -1, 0], [-1, 2, -1], [-1, -1, -1]])
+    data = plot.Lineage(env_steps=np.array([1, 2, 3]), eta=np.zeros((3, 3, 2)), parent=parent, start=np.zeros((3, 2)))
+    np.testing.assert_array_equal(data.founders, [[0, 1, 0], [0, 0, 0], [0, 0, 0]])
+
+
 def test_a_fixed_ratio_run_has_no_lineage(tmp_path):
     with pytest.raises(ValueError, match="not a PBT run"):
         rows = [{"member": 0, "epoch": 1, "eta": [0.1, 1.0]}]
