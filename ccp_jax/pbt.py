@@ -15,7 +15,8 @@ epochs, at the end of the epoch and inside the same compiled program (`exploit_e
 
 The copy is a gather along the grid axis (`copy_members`), so a grid sharded over devices needs no other
 code: XLA moves the donors' rows between devices. Padded members (copies that fill the last device) are
-never ranked, never copied and never replaced. Docs/design.md#population-based-training states why.
+never ranked, never copied and never replaced. docs/design.md#population-based-training-of-the-ratio says
+why.
 """
 from __future__ import annotations
 
