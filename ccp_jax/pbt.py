@@ -13,10 +13,10 @@ epochs, at the end of the epoch and inside the same compiled program (`exploit_e
   [0, 1] with probability `pbt_resample`, else multiplied by one of `pbt_factors`; clipped to [0, 1];
 - a copy's key is the donor's with its own member index folded in, so the two go on with different samples.
 
-The copy is a gather along the grid axis (`copy_members`), so a grid sharded over devices needs no other
-code: XLA moves the donors' rows between devices. Padded members (copies that fill the last device) are
-never ranked, never copied and never replaced. docs/design.md#population-based-training-of-the-ratio says
-why.
+The copy is a gather and scatter of the replaced rows along the grid axis (`copy_members`), so a grid
+sharded over devices needs no other code: XLA moves the donors' rows between devices. Padded members (copies
+that fill the last device) are never ranked, never copied and never replaced.
+docs/design.md#population-based-training-of-the-ratio says why.
 """
 from __future__ import annotations
 
@@ -77,13 +77,15 @@ def replaced_count(grid_size: int, fraction: float) -> int:
     return max(1, int(fraction * grid_size))
 
 
-def select(fit: jax.Array, keys: jax.Array, fraction: float, grid_size: int) -> tuple[jax.Array, jax.Array]:
-    """Truncation selection: (source int32[P], copied bool[P]) for fit float32[P] and one key per member [P, 2].
+def select(fit: jax.Array, keys: jax.Array, fraction: float,
+           grid_size: int) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """Truncation selection: (source int32[P], copied bool[P], bottom int32[C]) for fit float32[P] and one key
+    per member [P, 2], C = `replaced_count`.
 
     The first `grid_size` of the P members are ranked (the rest are padding: always their own source). Each
-    of the bottom `replaced_count` draws a donor from the top as many with its own key and copies it where the
-    donor's fitness is strictly higher (so an unranked population, all at 0, keeps its diversity). Ties in
-    rank go to the lower member index.
+    of the `bottom` C draws a donor from the top C with its own key and copies it where the donor's fitness
+    is strictly higher (so an unranked population, all at 0, keeps its diversity). Ties in rank go to the
+    lower member index.
     """
     padded = fit.shape[0]
     count = replaced_count(grid_size, fraction)
@@ -93,7 +95,7 @@ def select(fit: jax.Array, keys: jax.Array, fraction: float, grid_size: int) -> 
     picks = jax.vmap(lambda k: jax.random.randint(k, (), 0, count))(keys)
     donor = order[picks].astype(jnp.int32)
     copied = (rank >= grid_size - count) & (fit[donor] > fit)
-    return jnp.where(copied, donor, jnp.arange(padded, dtype=jnp.int32)), copied
+    return jnp.where(copied, donor, jnp.arange(padded, dtype=jnp.int32)), copied, order[grid_size - count:]
 
 
 def perturb(eta: jax.Array, keys: jax.Array, config: Config) -> jax.Array:
@@ -116,9 +118,10 @@ def perturb(eta: jax.Array, keys: jax.Array, config: Config) -> jax.Array:
     return jax.vmap(one)(eta, keys)
 
 
-def copy_members(tree, source: jax.Array):
-    """Every leaf's rows along the grid axis taken from `source` int32[P]: a gather, sharded or not."""
-    return jax.tree.map(lambda x: x[source], tree)
+def copy_members(tree, rows: jax.Array, source: jax.Array):
+    """Every leaf's `rows` int32[C] along the grid axis replaced by its rows `source` int32[C]: a gather and a
+    scatter of C rows, sharded or not (only the rows that may change are gathered, not the whole grid)."""
+    return jax.tree.map(lambda x: x.at[rows].set(x[source]), tree)
 
 
 def exploit_explore(state, config: Config, grid_size: int):
@@ -131,8 +134,8 @@ def exploit_explore(state, config: Config, grid_size: int):
     members = jnp.arange(padded, dtype=jnp.uint32)
     fit = fitness(state.pbt.window)
     draws = jax.vmap(lambda k: jax.random.split(jax.random.fold_in(k, STREAM)))(state.key)  # [P, 2, 2]
-    source, copied = select(fit, draws[:, 0], config.ccp.pbt_fraction, grid_size)
-    new = copy_members(state, source)
+    source, copied, bottom = select(fit, draws[:, 0], config.ccp.pbt_fraction, grid_size)
+    new = copy_members(state, bottom, source[bottom])
     key = jnp.where(copied[:, None], jax.vmap(jax.random.fold_in)(new.key, members), new.key)
     eta = jnp.where(copied[:, None], perturb(new.pbt.eta, draws[:, 1], config), new.pbt.eta)
     window = jax.tree.map(jnp.zeros_like, new.pbt.window)

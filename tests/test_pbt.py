@@ -62,13 +62,14 @@ def test_fitness_is_the_mean_fraction_of_stages_completed():
 def test_selection_replaces_the_bottom_by_the_top_and_leaves_padding_alone():
     fit = jnp.array([0.1, 0.9, 0.5, 0.0, 0.7, 0.3, 0.2, 0.6, 0.0, 0.0])  # 8 members and 2 padded slots
     keys = jax.random.split(jax.random.PRNGKey(0), 10)
-    source, copied = map(np.asarray, select(fit, keys, 0.25, grid_size=8))
+    source, copied, bottom = map(np.asarray, select(fit, keys, 0.25, grid_size=8))
+    np.testing.assert_array_equal(np.sort(bottom), [0, 3])
     np.testing.assert_array_equal(np.nonzero(copied)[0], [0, 3])  # the two least fit
     assert set(source[[0, 3]]) <= {1, 4}  # from the two fittest
     keep = [1, 2, 4, 5, 6, 7, 8, 9]
     np.testing.assert_array_equal(source[keep], keep)
     # A population without a fitter member keeps every member (all at 0 before any episode ends).
-    source, copied = select(jnp.zeros(8), keys[:8], 0.25, grid_size=8)
+    source, copied, _ = select(jnp.zeros(8), keys[:8], 0.25, grid_size=8)
     assert not copied.any() and (source == jnp.arange(8)).all()
 
 
