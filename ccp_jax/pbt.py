@@ -20,7 +20,7 @@ docs/design.md#population-based-training-of-the-ratio says why.
 """
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple, TypeVar
 
 import jax
 import jax.numpy as jnp
@@ -28,6 +28,11 @@ from flax import struct
 
 from ccp_jax.collect import EpisodeStats
 from ccp_jax.config import Config
+
+if TYPE_CHECKING:
+    from ccp_jax.trainer import TrainState  # trainer.py imports this module
+
+Tree = TypeVar("Tree")
 
 STREAM = 0x9B7  # folded into a member's key for its PBT draws, so they never reuse a training draw
 
@@ -118,13 +123,13 @@ def perturb(eta: jax.Array, keys: jax.Array, config: Config) -> jax.Array:
     return jax.vmap(one)(eta, keys)
 
 
-def copy_members(tree, rows: jax.Array, source: jax.Array):
+def copy_members(tree: Tree, rows: jax.Array, source: jax.Array) -> Tree:
     """Every leaf's `rows` int32[C] along the grid axis replaced by its rows `source` int32[C]: a gather and a
     scatter of C rows, sharded or not (only the rows that may change are gathered, not the whole grid)."""
     return jax.tree.map(lambda x: x.at[rows].set(x[source]), tree)
 
 
-def exploit_explore(state, config: Config, grid_size: int):
+def exploit_explore(state: TrainState, config: Config, grid_size: int) -> tuple[TrainState, PbtRecord]:
     """One PBT ranking of a grid's state (leaves [P, ...]; `.key` [P, 2], `.pbt` a `PbtMember`).
 
     Returns (state, `PbtRecord` [P]): copied members hold their donor's whole state with their own member
@@ -143,7 +148,7 @@ def exploit_explore(state, config: Config, grid_size: int):
     return new, PbtRecord(eta=eta, parent=jnp.where(copied, source, -1), fitness=fit)
 
 
-def pbt_step(state, config: Config, grid_size: int):
+def pbt_step(state: TrainState, config: Config, grid_size: int) -> tuple[TrainState, PbtRecord]:
     """After every member's epoch: `exploit_explore` where the epoch count is a multiple of `pbt_every`, else
     the state as it is. Returns (state, `PbtRecord` [P])."""
     padded = state.key.shape[0]
