@@ -224,6 +224,20 @@ class Ccp:
     """--eta auto: the interval the ratio stays in."""
     eta_auto_rate: float = 0.05
     """--eta auto under the outcomes, gated and trusted rules: η's largest move per epoch."""
+    pbt_every: int = 0
+    """Population-based training of the ratios (docs/pbt.md): every K epochs the grid's members are ranked by the
+    fitness of their training episodes since the last ranking, and each of the bottom pbt_fraction copies the
+    whole state of a random one of the top pbt_fraction (where that one is fitter) and perturbs its ratios; the
+    grid's ratios are the starting population. 0: off, every member keeps its ratios."""
+    pbt_fraction: float = 0.25
+    """PBT: the fraction of the members replaced at each ranking (at least one), and the fraction they copy from;
+    in (0, 0.5]."""
+    pbt_factors: tuple[float, float] = (0.8, 1.25)
+    """PBT: a copied member's ratios are each multiplied by one of these (chosen at random per cooperative agent),
+    then clipped to [0, 1]."""
+    pbt_resample: float = 0.25
+    """PBT: the probability that a copied member's ratio is instead drawn anew, uniformly in [0, 1] (per
+    cooperative agent)."""
 
     def check(self) -> None:
         from ccp_jax.eta import ETA_AUTO_RULES  # local: eta.py imports this module
@@ -240,6 +254,14 @@ class Ccp:
         lo, hi = self.eta_auto_range
         if not 0.0 <= lo <= hi <= 1.0:
             raise ConfigError("eta_auto_range", f"must satisfy 0 <= low <= high <= 1, got {self.eta_auto_range}")
+        _positive_ints(self, ("pbt_every",), minimum=0)
+        if not (math.isfinite(self.pbt_fraction) and 0.0 < self.pbt_fraction <= 0.5):
+            raise ConfigError("pbt_fraction", f"must be in (0, 0.5] (the bottom and the top fraction must not "
+                                              f"overlap), got {self.pbt_fraction}")
+        if len(self.pbt_factors) != 2 or not all(math.isfinite(f) and f > 0 for f in self.pbt_factors):
+            raise ConfigError("pbt_factors", f"must be two positive finite numbers, got {self.pbt_factors}")
+        if not (math.isfinite(self.pbt_resample) and 0.0 <= self.pbt_resample <= 1.0):
+            raise ConfigError("pbt_resample", f"must be in [0, 1], got {self.pbt_resample}")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -545,6 +567,7 @@ class Config:
         self._check_cycles()
         self._check_ratios()
         self._check_auto()
+        self._check_pbt()
         if self.algo == "tp":
             self.tp.check()
             self._check_tp()
@@ -590,6 +613,25 @@ class Config:
         if self.ablations.eta_auto_floor_step and self.ccp.eta_auto_rule not in OUTCOME_RULES:
             raise ConfigError("eta_auto_floor_step", f"bounds the outcome rules {OUTCOME_RULES}; the rule "
                               f"{self.ccp.eta_auto_rule!r} clips η* to eta_auto_range instead")
+
+    def _check_pbt(self) -> None:
+        """PBT moves the numeric ratios of a cooperative population of at least two members."""
+        from ccp_jax.eta import AUTO  # local: eta.py imports this module
+
+        if not self.ccp.pbt_every:
+            for name in ("pbt_fraction", "pbt_factors", "pbt_resample"):
+                if getattr(self.ccp, name) != getattr(Ccp, name):
+                    raise ConfigError(name, "is a setting of population-based training; turn it on with --pbt-every K")
+            return
+        if self.algo != "csac":
+            raise ConfigError("pbt_every", f"population-based training moves the cooperative ratios of csac; "
+                                           f"--algo {self.algo} has none")
+        if self.grid_size < 2:
+            raise ConfigError("pbt_every", "population-based training needs at least 2 members (--eta with several "
+                                           f"ratios and/or --seeds K), got {self.grid_size}")
+        if any(x == AUTO for eta in self.grid.etas for x in eta):
+            raise ConfigError("pbt_every", "population-based training moves numeric ratios; the starting ratios "
+                                           f"must not be {AUTO!r}, got {[list(e) for e in self.grid.etas]}")
 
     def _check_tp(self) -> None:
         if self.tp.primitives is None:

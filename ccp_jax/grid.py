@@ -16,6 +16,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec, SingleDeviceShardin
 
 from ccp_jax.config import Config, ConfigError
 from ccp_jax.devices import CPU_INIT_OPTIONS, default_members_at_once, grid_devices, pad_grid
+from ccp_jax.pbt import init_member, pbt_step
 from ccp_jax.trainer import EpochMetrics, Trainer, TrainState, make_train
 from envs_mjx import cpu_compiler_options
 
@@ -38,6 +39,9 @@ class GridTrainer:
     program (`jax.lax.map`); the default is `default_members_at_once`. Results
     do not depend on it beyond float rounding. `train_step` donates the state,
     so the replay buffers are updated in place.
+
+    With `pbt_every` (population-based training, `ccp_jax.pbt`) each member's state carries its ratios,
+    starting from the grid's, and the same program ends each epoch with the PBT step across the grid axis.
     """
 
     def __init__(self, config: Config, env: Env, devices: Sequence[jax.Device] | None = None,
@@ -46,6 +50,8 @@ class GridTrainer:
         self.networks = trainer.networks
         self.devices = list(devices) if devices else grid_devices(config.grid_size)
         self.grid_size = config.grid_size
+        self.pbt = config.ccp.pbt_every > 0
+        self._eta = config.grid_arrays()[0]  # PBT's starting ratios
         self.padded_size = -(-self.grid_size // len(self.devices)) * len(self.devices)
         local = self.padded_size // len(self.devices)
         check_members_at_once(members_at_once)
@@ -60,11 +66,14 @@ class GridTrainer:
         step = _local_step(trainer, local, self.members_at_once)
         if not one:
             step = jax.shard_map(step, mesh=mesh, in_specs=(spec, spec), out_specs=(spec, spec), check_vma=False)
+        if self.pbt:  # outside shard_map: a gather across the whole grid axis
+            step = _with_pbt(step, config, self.grid_size)
+        init = _pbt_init(trainer.init) if self.pbt else trainer.init
         # Compile options only apply where they were measured: CPU (`envs_mjx.cpu_compiler_options`).
         cpu = self.devices[0].platform == "cpu"
         self.compiler_options = cpu_compiler_options(env) if cpu else {}
         init_options = {**self.compiler_options, **CPU_INIT_OPTIONS} if cpu else None
-        self._init = jax.jit(jax.vmap(trainer.init), in_shardings=self.sharding, out_shardings=self.sharding,
+        self._init = jax.jit(jax.vmap(init), in_shardings=self.sharding, out_shardings=self.sharding,
                              compiler_options=init_options)
         self._step = jax.jit(step, in_shardings=(self.sharding, self.sharding),
                              out_shardings=(self.sharding, self.sharding), donate_argnums=0,
@@ -73,17 +82,21 @@ class GridTrainer:
     def _pad(self, x) -> jax.Array:
         return jax.device_put(pad_grid(x, self.padded_size), self.sharding)
 
+    def _init_args(self, seeds) -> tuple:
+        return (self._pad(seeds), self._pad(self._eta)) if self.pbt else (self._pad(seeds),)
+
     def init(self, seeds) -> TrainState:
         """States for seeds int[G] (padded to the device count: leaves [G_padded, ...])."""
-        return self._init(self._pad(seeds))
+        return self._init(*self._init_args(seeds))
 
     def abstract_state(self, seeds) -> TrainState:
         """Shapes, dtypes and shardings of `init(seeds)`, without computing it (for restoring)."""
-        shapes = jax.eval_shape(self._init, self._pad(seeds))
+        shapes = jax.eval_shape(self._init, *self._init_args(seeds))
         return jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=self.sharding), shapes)
 
     def train_step(self, state: TrainState, eta) -> tuple[TrainState, EpochMetrics]:
-        """One epoch of every member: eta float32[G, N]. Metrics keep only the real members."""
+        """One epoch of every member: eta float32[G, N] (ignored under PBT: the members carry their own).
+        Metrics keep only the real members."""
         state, metrics = self._step(state, self._pad(eta))
         return state, jax.tree.map(lambda x: x[: self.grid_size], metrics)
 
@@ -101,6 +114,23 @@ def _local_step(trainer: Trainer, local: int, members_at_once: int):
         return jax.tree.map(lambda x: x.reshape((local,) + x.shape[2:]), out)
 
     return step
+
+
+def _pbt_init(init):
+    """A member's `init(seed)` as `(seed, eta float32[N]) -> TrainState` with its PBT state (`pbt.init_member`)."""
+    return lambda seed, eta: init(seed).replace(pbt=init_member(eta))
+
+
+def _with_pbt(step, config: Config, grid_size: int):
+    """The grid's epoch `step` followed by PBT's step across the grid axis (`pbt.pbt_step`), whose record the
+    metrics carry."""
+
+    def grid_step(state: TrainState, eta: jax.Array):
+        state, metrics = step(state, eta)
+        state, record = pbt_step(state, config, grid_size)
+        return state, metrics._replace(pbt=record)
+
+    return grid_step
 
 
 def make_grid_train(config: Config, env: Env, devices: Sequence[jax.Device] | None = None,

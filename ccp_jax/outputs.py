@@ -78,7 +78,8 @@ def metric_rows(config: Config, epoch: int, metrics, wall_s: float) -> list[dict
     """One metrics.jsonl row per grid member from an epoch's metrics (numpy, leading grid axis).
 
     Every algorithm writes the same evaluation fields; the per-agent training
-    fields are SAC's (`EpochMetrics`) or TP's (`TPEpochMetrics`, see `_tp_fields`).
+    fields are SAC's (`EpochMetrics`) or TP's (`TPEpochMetrics`, see `_tp_fields`); a PBT run adds its
+    lineage (`pbt_fields`). "eta" is the member's ratios as the config gives them (under PBT: its start).
     """
     rows = []
     for member, (eta, seed) in enumerate(config.members):
@@ -91,6 +92,8 @@ def metric_rows(config: Config, epoch: int, metrics, wall_s: float) -> list[dict
             "train_stage_fraction": [float(v) for v in metrics.train_stage_fraction[member]],
         }
         row.update(_tp_fields(metrics, member) if config.algo == "tp" else _sac_fields(config, metrics, member))
+        if getattr(metrics, "pbt", None) is not None:
+            row.update(pbt_fields(metrics.pbt, member))
         row["epoch_wall_s"] = wall_s
         rows.append(row)
     return rows
@@ -112,6 +115,14 @@ def _sac_fields(config: Config, metrics, member: int) -> dict:
         "updated": per_agent(t.updated),
         "buffer_fill": [int(v) / config.sac.buffer_size for v in metrics.buffer_size[member]],
     }
+
+
+def pbt_fields(record, member: int) -> dict:
+    """A member's PBT lineage from a `pbt.PbtRecord` (numpy, leading grid axis): the ratios it holds after the
+    epoch's PBT step (those the next epoch trains with; `eta_used` has this epoch's), the member it copied at
+    that step (-1: none) and its fitness (`pbt.fitness`, of its training episodes since the last ranking)."""
+    return {"pbt_eta": [float(v) for v in record.eta[member]], "pbt_parent": int(record.parent[member]),
+            "pbt_fitness": float(record.fitness[member])}
 
 
 def _tp_fields(metrics, member: int) -> dict:
@@ -284,7 +295,8 @@ def complete_epochs(rows: list[dict], grid_size: int) -> int:
 
 
 def summarise(config: Config, rows: list[dict], wall_s: float | None = None) -> dict:
-    """Per member: final success (mean of the last `FINAL_WINDOW` epochs), learning milestones, critic peaks."""
+    """Per member: final success (mean of the last `FINAL_WINDOW` epochs), learning milestones, critic peaks; under
+    PBT the ratios its last epoch left it with (`pbt_eta`)."""
     members = []
     for member, (eta, seed) in enumerate(config.members):
         mine = sorted((r for r in rows if r["member"] == member), key=lambda r: r["epoch"])
@@ -300,6 +312,7 @@ def summarise(config: Config, rows: list[dict], wall_s: float | None = None) -> 
             "first_success_env_steps": first,
             **critic_peaks(mine, DIVERGED * config.value_bound),
             **first_divergence(mine, config.value_bound),
+            **({"pbt_eta": mine[-1]["pbt_eta"]} if mine and "pbt_eta" in mine[-1] else {}),
         })
     return {"final_window_epochs": FINAL_WINDOW, "q_bound": config.value_bound, "wall_s": wall_s, "members": members}
 
@@ -365,12 +378,16 @@ def eta_text(eta: list) -> str:
 
 def summary_table(summary: dict) -> str:
     """A plain-text table of the summary, one line per member; then a warning per diverged member."""
-    lines = [f"{'member':>6}  {'algo':<5}  {'eta':<14}  {'seed':>4}  {'final success':>13}  "
+    etas = [eta_text(m["eta"]) if m["algo"] == "csac" else "-" for m in summary["members"]]
+    # Where PBT moved a member's ratios: its start, then where it ended.
+    etas = [e + ("→" + ",".join(f"{x:.3g}" for x in m["pbt_eta"]) if "pbt_eta" in m else "")
+            for e, m in zip(etas, summary["members"])]
+    width = max([14, *map(len, etas)])
+    lines = [f"{'member':>6}  {'algo':<5}  {'eta':<{width}}  {'seed':>4}  {'final success':>13}  "
              f"{'final return':>12}  {'first success at':>16}"]
-    for m in summary["members"]:
-        eta = eta_text(m["eta"]) if m["algo"] == "csac" else "-"
+    for m, eta in zip(summary["members"], etas):
         first = "-" if m["first_success_env_steps"] is None else f"{m['first_success_env_steps']:,}"
-        lines.append(f"{m['member']:>6}  {m['algo']:<5}  {eta:<14}  {m['seed']:>4}  {m['final_success']:>13.2f}  "
+        lines.append(f"{m['member']:>6}  {m['algo']:<5}  {eta:<{width}}  {m['seed']:>4}  {m['final_success']:>13.2f}  "
                      f"{m['final_return']:>12.1f}  {first:>16}")
     for m in summary["members"]:
         if m.get("diverged_env_steps") is not None:

@@ -1,6 +1,8 @@
-"""Figures from run folders (docs/design.md#contracts): learning curves over seeds and ratio-sweep heatmaps.
+"""Figures from run folders (docs/design.md#contracts): learning curves over seeds, ratio-sweep heatmaps and
+a PBT run's lineage (docs/pbt.md).
 
     python -m ccp_jax.plot RUN_DIR [RUN_DIR ...] [--out FILE.png] [--metric success_rate]
+    python -m ccp_jax.plot RUN_DIR --lineage
 
 Figures are built on `matplotlib.figure.Figure` with the Agg canvas, never through
 pyplot, so plotting is headless and leaves matplotlib's global backend alone.
@@ -11,7 +13,7 @@ import argparse
 import json
 from collections import defaultdict
 from pathlib import Path
-from typing import Optional, Sequence
+from typing import NamedTuple, Optional, Sequence
 
 import numpy as np
 from matplotlib.axes import Axes
@@ -247,6 +249,86 @@ def heatmap(values: np.ndarray, eta1: Sequence[float], eta2: Sequence[float], ax
     return ax.figure
 
 
+class Lineage(NamedTuple):
+    """A PBT run's lineage from its metrics rows (`load_lineage`), G members over E epochs."""
+
+    env_steps: np.ndarray  # int64[E]
+    eta: np.ndarray  # float64[E, G, N]: the ratios each member holds after each epoch (`pbt_eta`)
+    parent: np.ndarray  # int64[E, G]: the member each copied at that epoch, -1 where none
+    start: np.ndarray  # float64[G, N]: the ratios each started with
+
+    @property
+    def founders(self) -> np.ndarray:
+        """int64[E, G]: the starting member whose line each member carries after each epoch (a copy carries its
+        donor's founder; donors are never copied at the same epoch, so the order of the copies does not matter)."""
+        founder = np.arange(self.parent.shape[1])
+        out = []
+        for parent in self.parent:
+            founder = np.where(parent >= 0, founder[np.maximum(parent, 0)], founder)
+            out.append(founder)
+        return np.asarray(out).reshape(self.parent.shape)
+
+
+def load_lineage(run_dir: str | Path) -> Lineage:
+    """The `Lineage` of a PBT run folder; ValueError where its rows carry none (not a PBT run)."""
+    rows = outputs.read_rows(outputs.metrics_file(run_dir))
+    if not rows or "pbt_parent" not in rows[0]:
+        raise ValueError(f"{run_dir} is not a PBT run (its metrics have no pbt_parent; train with --pbt-every K)")
+    members = 1 + max(r["member"] for r in rows)
+    epochs = sorted({r["epoch"] for r in rows if sum(x["epoch"] == r["epoch"] for x in rows) == members})
+    by_key = {(r["epoch"], r["member"]): r for r in rows}
+    table = [[by_key[e, m] for m in range(members)] for e in epochs]
+    return Lineage(env_steps=np.asarray([t[0]["env_steps"] for t in table], np.int64),
+                   eta=np.asarray([[r["pbt_eta"] for r in t] for t in table], np.float64),
+                   parent=np.asarray([[r["pbt_parent"] for r in t] for t in table], np.int64),
+                   start=np.asarray([r["eta"] for r in table[0]], np.float64))
+
+
+def lineage(data: Lineage, title: Optional[str] = None) -> Figure:
+    """A PBT run's ratios and family tree: one panel per cooperative agent with every member's η_n vs env steps
+    (a cross where it copied another member and explored), then the family tree: a row per member, coloured by
+    the starting member whose line it carries, with an arrow from donor to copy at each copy."""
+    steps, (_, members, agents) = data.env_steps, data.eta.shape
+    cooperative = max(agents - 1, 1)
+    fig = new_figure(7.0, 2.2 * cooperative + 0.25 * members + 1.5)
+    axes = fig.subplots(cooperative + 1, 1, sharex=True,
+                        gridspec_kw={"height_ratios": [2.2] * cooperative + [0.25 * members + 1.0]})
+    palette = [f"C{i}" for i in range(10)] + EXTRA_COLORS
+    color = lambda m: palette[m % len(palette)]
+    founders = data.founders
+    # Each epoch's row holds the ratios from its end on; the first epoch starts one epoch before its row.
+    edges = np.concatenate([steps[:1] - (steps[1] - steps[0] if len(steps) > 1 else steps[0]), steps])
+    for n, ax in enumerate(axes[:-1]):
+        for m in range(members):
+            ax.step(edges, np.concatenate([data.start[m, n:n + 1], data.eta[:, m, n]]), where="post",
+                    color=color(m), linewidth=1, label=f"member {m}")
+            copied = data.parent[:, m] >= 0
+            ax.plot(steps[copied], data.eta[copied, m, n], "x", color=color(m))
+        ax.set_ylim(-0.02, 1.02)
+        ax.set_ylabel(f"η of agent {n + 1}")
+        ax.grid(alpha=0.3)
+    if members <= 12:
+        axes[0].legend(fontsize="x-small", ncol=2)
+    tree = axes[-1]
+    # During epoch e a member carries the line it held before that epoch's copy.
+    carried = np.concatenate([np.arange(members)[None], founders[:-1]])
+    for m in range(members):
+        for e in range(len(steps)):
+            tree.plot(edges[e:e + 2], [m, m], color=color(carried[e, m]), linewidth=4, solid_capstyle="butt")
+            if data.parent[e, m] >= 0:
+                tree.annotate("", xy=(steps[e], m), xytext=(steps[e], data.parent[e, m]),
+                              arrowprops=dict(arrowstyle="->", color=color(founders[e, m]), linewidth=1))
+    tree.set_yticks(range(members), [f"{m} ({outputs.eta_text(list(data.start[m]))})" for m in range(members)],
+                    fontsize="x-small")
+    tree.set_ylabel("member (start η)")
+    tree.set_xlabel("environment steps")
+    tree.xaxis.set_major_formatter(FuncFormatter(_steps_label))
+    tree.invert_yaxis()
+    if title:
+        axes[0].set_title(title)
+    return fig
+
+
 def main(argv: Optional[Sequence[str]] = None) -> Path:
     parser = argparse.ArgumentParser(prog="python -m ccp_jax.plot", description=(
         "Curves of a metric vs env steps from run folders: mean ± std over seeds, one line per (algo, eta vector)."))
@@ -256,12 +338,17 @@ def main(argv: Optional[Sequence[str]] = None) -> Path:
     parser.add_argument("--out", type=Path, help="PNG to write (default RUN_DIR/success.png for success_rate, "
                                                   "else RUN_DIR/<metric>.png, in the first RUN_DIR)")
     parser.add_argument("--title")
+    parser.add_argument("--lineage", action="store_true",
+                        help="draw one PBT run's ratios per agent and family tree instead (default --out "
+                             "RUN_DIR/lineage.png)")
     parser.add_argument("--labels", nargs="+", metavar="LABEL",
                         help="one name per RUN_DIR, replacing its algo in the legend (to compare variants of one algo); "
                              "folders with the same label pool their seeds")
     args = parser.parse_args(argv)
     if args.labels and len(args.labels) != len(args.run_dirs):
         parser.exit(2, f"error: labels: {len(args.labels)} given for {len(args.run_dirs)} run folders\n")
+    if args.lineage:
+        return _main_lineage(parser, args)
     name = "success" if args.metric == "success_rate" else args.metric.replace("/", "_agent")
     out = args.out or args.run_dirs[0] / f"{name}.png"
     try:
@@ -277,6 +364,19 @@ def main(argv: Optional[Sequence[str]] = None) -> Path:
     except (FileNotFoundError, KeyError, ValueError) as err:
         parser.exit(2, f"error: {err}\n")
     curves(groups, args.metric, title=args.title).savefig(out)
+    print(f"wrote {out}")
+    return out
+
+
+def _main_lineage(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Path:
+    if len(args.run_dirs) != 1:
+        parser.exit(2, f"error: lineage: give one run folder, got {len(args.run_dirs)}\n")
+    out = args.out or args.run_dirs[0] / "lineage.png"
+    try:
+        data = load_lineage(args.run_dirs[0])
+    except (FileNotFoundError, ValueError) as err:
+        parser.exit(2, f"error: {err}\n")
+    lineage(data, title=args.title).savefig(out)
     print(f"wrote {out}")
     return out
 

@@ -24,6 +24,7 @@ from ccp_jax.collect import EpisodeStats, EvalMetrics, TracedOnce, make_collect,
 from ccp_jax.config import Config
 from ccp_jax.learner import (AgentState, Learner, Networks, UpdateMetrics, init_agents, make_learner, make_networks,
                              train_loops)
+from ccp_jax.pbt import PbtMember, PbtRecord, accumulate
 
 
 class TrainState(struct.PyTreeNode):
@@ -37,6 +38,7 @@ class TrainState(struct.PyTreeNode):
     epoch: jax.Array  # int32[]
     eta_auto: jax.Array  # float32[N]: the outcome rules' ratios for "auto" members (`eta.outcome_eta`)
     successor_succeeded: jax.Array  # bool[N]: a training episode has succeeded in stage n + 1 ("gated", "trusted")
+    pbt: PbtMember | None = None  # with `pbt_every`: the member's ratios and window (None: the grid's ratios)
 
 
 class EpochMetrics(NamedTuple):
@@ -51,6 +53,7 @@ class EpochMetrics(NamedTuple):
     buffer_size: jax.Array  # int32[N]
     pull_own: jax.Array  # float32[N]: mean ‖∂(η Q̂_n)/∂a‖ on one batch after the epoch's updates
     pull_next: jax.Array  # float32[N]: mean ‖∂((1 − η) Q̂_{n+1})/∂a‖
+    pbt: PbtRecord | None = None  # with `pbt_every`: the grid's PBT step after the epoch (`grid.GridTrainer`)
 
 
 class Trainer(NamedTuple):
@@ -73,8 +76,8 @@ def make_train(config: Config, env: Env) -> Trainer:
     learner = make_learner(config, nets, action_size)
 
     def train_step(state: TrainState, eta: jax.Array) -> tuple[TrainState, EpochMetrics]:
-        """One epoch: eta float32[N], NaN for "auto"."""
-        eta = ratios.epoch_eta(eta, state.eta_auto, config)
+        """One epoch: eta float32[N], NaN for "auto"; a member under PBT trains with its own ratios instead."""
+        eta = ratios.epoch_eta(eta if state.pbt is None else state.pbt.eta, state.eta_auto, config)
         key, k_collect, k_train, k_eval = jax.random.split(state.key, 4)
         k_train, k_pulls = jax.random.split(k_train)
         agents, env_state, buffer, env_steps, stats, train_metrics = run_cycles(
@@ -91,7 +94,8 @@ def make_train(config: Config, env: Env) -> Trainer:
         eta_auto = ratios.next_auto(state.eta_auto, succeeded, stats.stages, stats.successes, config)
         new_state = TrainState(agents=agents, buffer=buffer, env_state=env_state, key=key,
                                env_steps=env_steps, epoch=state.epoch + 1, eta_auto=eta_auto,
-                               successor_succeeded=succeeded)
+                               successor_succeeded=succeeded,
+                               pbt=None if state.pbt is None else accumulate(state.pbt, stats))
         return new_state, metrics
 
     init = functools.partial(init_state, config, env, nets, obs_size, action_size)

@@ -38,3 +38,46 @@ def test_four_devices_equal_one():
     result = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "EQUAL" in result.stdout
+
+
+PBT_SCRIPT = textwrap.dedent("""
+    import jax, numpy as np
+    from ccp_jax.config import make_config
+    from ccp_jax.envs import make_env
+    from ccp_jax.grid import make_grid_train
+    assert jax.device_count() == 4, jax.devices()
+    # 6 members padded to 8; a ranking after every epoch replaces one (⌊0.25 × 6⌋).
+    config = make_config("tiny", etas=((0.1,), (0.9,), (0.5,)), seeds=(0, 1), pbt_every=1, total_steps=600)
+    eta, seed = config.grid_arrays()
+    results = []
+    for devices in (jax.devices()[:1], jax.devices()):
+        trainer = make_grid_train(config, make_env(config), devices)
+        state = trainer.init(seed)
+        records = []
+        for _ in range(3):
+            state, metrics = trainer.train_step(state, eta)
+            records.append(jax.device_get(metrics.pbt))
+        if len(devices) == 4:
+            assert len(state.pbt.eta.sharding.device_set) == 4
+        results.append((jax.device_get(state), records))
+    (one, one_records), (four, four_records) = results
+    copies = 0
+    for a, b in zip(one_records, four_records):
+        np.testing.assert_array_equal(a.parent, b.parent)  # the same copies, across devices
+        assert a.parent.max() < 6  # padding is never a donor
+        copies += (a.parent >= 0).sum()
+        np.testing.assert_allclose(a.eta, b.eta, rtol=1e-6)
+        np.testing.assert_array_equal(a.fitness, b.fitness)
+    assert copies >= 1, "no member was copied: the comparison says nothing about the gather"
+    for a, b in zip(jax.tree.leaves(one), jax.tree.leaves(four)):
+        np.testing.assert_allclose(a[:6], b[:6], rtol=1e-5, atol=1e-6)
+    print("EQUAL")
+""")
+
+
+def test_pbt_on_four_devices_copies_as_on_one():
+    env = dict(os.environ, XLA_FLAGS=os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4",
+               JAX_PLATFORMS="cpu")
+    result = subprocess.run([sys.executable, "-c", PBT_SCRIPT], env=env, capture_output=True, text=True, timeout=900)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "EQUAL" in result.stdout
