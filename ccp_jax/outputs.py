@@ -15,13 +15,11 @@ from typing import Any, Iterable, Optional
 import numpy as np
 
 from ccp_jax.config import Config, ConfigError
+from ccp_jax.health import DIVERGED
 
 METRICS = "metrics.jsonl"
 COMPACTED = METRICS + ".gz"
 FINAL_WINDOW = 10  # reported success = mean over the last 10 epochs (docs/design.md#hyperparameters)
-# A critic above this many times `Config.value_bound` has diverged: its entropy bonus adds at most
-# α |A| log 2 / (1 − γ) (no distribution on [−1, 1]^|A| has more entropy), under 9 bounds for α |A| ≤ 13.
-DIVERGED = 10.0
 
 
 def strict(x: Any) -> Any:
@@ -112,7 +110,7 @@ def _sac_fields(config: Config, metrics, member: int) -> dict:
         "eta_used": per_agent(t.eta_used), "range_own": per_agent(t.range_own),
         "range_next": per_agent(t.range_next),
         "pull_own": per_agent(metrics.pull_own), "pull_next": per_agent(metrics.pull_next),
-        "updated": per_agent(t.updated),
+        "updated": per_agent(t.updated), "frozen": bool(metrics.frozen[member]),
         "buffer_fill": [int(v) / config.sac.buffer_size for v in metrics.buffer_size[member]],
     }
 
@@ -333,13 +331,8 @@ def critic_peaks(rows: list[dict], limit: float) -> dict:
 
 
 def divergence(row: dict, bound: float) -> Optional[str]:
-    """Why one epoch's row of a member shows a diverged learner, or None for a healthy one.
-
-    Diverged: a critic above `DIVERGED` × `bound` (the value its rewards allow); a critic loss above
-    (2 `DIVERGED` `bound`)², which a squared TD error reaches only with a prediction or target beyond that limit
-    (a runaway actor drives the targets' −α log π there while the critic's own values look sane); or a loss,
-    temperature or log-probability that is not finite. Rows without learner values (TP's) are healthy.
-    """
+    """Why one epoch's row of a member shows a diverged learner (`health`'s rule, on the written numbers), or None
+    for a healthy one. Rows without learner values (TP's) are healthy."""
     limit = DIVERGED * bound
     for n, q in enumerate(row.get("q_max") or ()):
         if _above(q, limit):
@@ -356,9 +349,11 @@ def divergence(row: dict, bound: float) -> Optional[str]:
 
 def first_divergence(rows: list[dict], bound: float) -> dict:
     """`diverged_env_steps`: the env steps of a member's first epoch (`rows`, in order) that `divergence` flags,
-    and `diverged`: its reason; both None for a healthy member."""
+    and `diverged`: its reason (both None for a healthy member); `frozen_epochs`: how many epochs' updates the
+    compiled epoch discarded as diverged (`health.diverged`)."""
     found = next(((r["env_steps"], why) for r in rows if (why := divergence(r, bound))), (None, None))
-    return {"diverged_env_steps": found[0], "diverged": found[1]}
+    return {"diverged_env_steps": found[0], "diverged": found[1],
+            "frozen_epochs": sum(bool(r.get("frozen")) for r in rows)}
 
 
 def _beyond(what: str, x: Optional[float], limit: str) -> str:
@@ -402,5 +397,6 @@ def summary_table(summary: dict) -> str:
 
 def diverged_warning(member: int, seed: int, env_steps: int, why: str) -> str:
     """The line that reports a diverged member, during training and under the final table."""
-    return (f"warning: member {member} (seed {seed}) diverged at {env_steps:,} env steps: {why}; it trains on with "
-            "the grid, but its results are not meaningful (per epoch: q_max, q_loss in metrics.jsonl)")
+    return (f"warning: member {member} (seed {seed}) diverged at {env_steps:,} env steps: {why}; its diverged "
+            "updates are discarded, so it keeps its last healthy parameters while the grid trains on (per epoch: "
+            "frozen, q_max, q_loss in metrics.jsonl)")

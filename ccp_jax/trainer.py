@@ -19,6 +19,7 @@ from flax import struct
 
 from ccp_jax import buffer as replay
 from ccp_jax import eta as ratios
+from ccp_jax import health
 from ccp_jax.buffer import ReplayBuffer
 from ccp_jax.collect import EpisodeStats, EvalMetrics, TracedOnce, make_collect, make_evaluate, per_episode
 from ccp_jax.config import Config
@@ -53,6 +54,7 @@ class EpochMetrics(NamedTuple):
     buffer_size: jax.Array  # int32[N]
     pull_own: jax.Array  # float32[N]: mean ‖∂(η Q̂_n)/∂a‖ on one batch after the epoch's updates
     pull_next: jax.Array  # float32[N]: mean ‖∂((1 − η) Q̂_{n+1})/∂a‖
+    frozen: jax.Array  # bool[]: the epoch's updates diverged and were discarded (`health.diverged`)
     pbt: PbtRecord | None = None  # with `pbt_every`: the grid's PBT step after the epoch (`grid.GridTrainer`)
 
 
@@ -82,10 +84,15 @@ def make_train(config: Config, env: Env) -> Trainer:
         k_train, k_pulls = jax.random.split(k_train)
         agents, env_state, buffer, env_steps, stats, train_metrics = run_cycles(
             config, collect, learner, state, eta, k_collect, k_train)
+        train_metrics = jax.tree.map(lambda x: x.mean(0), train_metrics)
+        # A diverged epoch's updates are discarded: the member keeps its last healthy parameters (and optimiser
+        # states) while the grid trains on; each later epoch tries again from them.
+        frozen = health.diverged(train_metrics, agents, config.value_bound)
+        agents = jax.tree.map(lambda old, new: jnp.where(frozen, old, new), state.agents, agents)
         pull_own, pull_next = learner.action_pulls(agents, replay.sample(buffer, k_pulls, config.sac.batch_size), eta,
                                                    k_pulls)
-        metrics = EpochMetrics(env_steps=env_steps, eval=evaluate(agents.actor, k_eval),
-                               train=jax.tree.map(lambda x: x.mean(0), train_metrics),
+        metrics = EpochMetrics(env_steps=env_steps, eval=evaluate(agents.actor, k_eval), train=train_metrics,
+                               frozen=frozen,
                                train_episodes=stats.episodes,
                                train_success=per_episode(stats.successes, stats.episodes),
                                train_stage_fraction=per_episode(stats.stages, stats.episodes),

@@ -17,6 +17,7 @@ from ccp_jax.train import main
 from ccp_jax.learner import critic_slots
 from ccp_jax.devices import default_members_at_once
 from ccp_jax.grid import make_grid_train
+from ccp_jax.trainer import make_train
 from toy_env import Line
 
 GRID = make_config("tiny", rooms=2, etas=((0.1,), (0.9,)), seeds=(0, 1), total_steps=400)
@@ -221,8 +222,9 @@ def test_summary_flags_a_critic_above_ten_times_the_value_its_rewards_allow():
     assert diverged["q_peak"] == [250.0, 101.0] and diverged["q_diverged_env_steps"] == 200  # the first epoch above
     warnings = [line for line in outputs.summary_table(summary).splitlines() if line.startswith("warning")]
     assert warnings == ["warning: member 1 (seed 1) diverged at 200 env steps: agent 0's critic reached 250, "
-                        "above 100 (10 x the 10 its rewards allow); it trains on with the grid, but its results are "
-                        "not meaningful (per epoch: q_max, q_loss in metrics.jsonl)"]
+                        "above 100 (10 x the 10 its rewards allow); its diverged updates are discarded, so it keeps "
+                        "its last healthy parameters while the grid trains on (per epoch: frozen, q_max, q_loss in "
+                        "metrics.jsonl)"]
     assert (healthy["diverged_env_steps"], diverged["diverged_env_steps"]) == (None, 200)
     assert outputs.critic_peaks([dict(env_steps=5, q_max=[1.0, float("nan")])], 100.0)["q_diverged_env_steps"] == 5
     assert outputs.critic_peaks([dict(env_steps=5)], 100.0) == {"q_peak": None, "q_diverged_env_steps": None}  # TP
@@ -244,7 +246,7 @@ def test_a_runaway_actor_is_flagged_by_the_critic_loss_its_targets_drive():
         "agent 1's pi_loss is not finite"
     assert outputs.divergence(dict(env_steps=5, success_rate=0.0), bound=20.0) is None  # TP rows: no learner values
     rows = [healthy, {**healthy, "env_steps": 200, "q_loss": [1e9, 0.1]}, {**healthy, "env_steps": 300}]
-    assert outputs.first_divergence(rows, 20.0) == {"diverged_env_steps": 200,
+    assert outputs.first_divergence(rows, 20.0) == {"diverged_env_steps": 200, "frozen_epochs": 0,
                                                     "diverged": "agent 0's critic loss reached 1e+09, above 160,000"}
 
 
@@ -254,8 +256,22 @@ def test_a_member_that_diverges_is_reported_while_training(tmp_path, capsys):
     summary = main(["--preset", "tiny", "--actor-lr", "1e6", "--no-progress", "--no-tensorboard",
                     "--out", str(tmp_path / "run")])
     assert summary["members"][0]["diverged_env_steps"] == 200
+    assert summary["members"][0]["frozen_epochs"] == 2  # every epoch's updates discarded
     out = capsys.readouterr().out
     assert out.count("warning: member 0 (seed 0) diverged at 200 env steps") == 2  # as it happened, and at the end
+
+
+def test_a_diverged_epoch_is_discarded_inside_the_program():
+    """The member keeps the parameters and optimiser states it had before the epoch; a healthy one moves on."""
+    for actor_lr, frozen in ((1e6, True), (3e-4, False)):
+        config = make_config("tiny", actor_lr=actor_lr, seeds=(0,))
+        trainer = make_train(config, make_env(config))
+        state = trainer.init(jnp.int32(0))
+        new, metrics = jax.jit(trainer.train_step)(state, jnp.array([0.1, 1.0], jnp.float32))
+        assert bool(metrics.frozen) == frozen
+        same = [bool(jnp.array_equal(a, b)) for a, b in zip(jax.tree.leaves(state.agents), jax.tree.leaves(new.agents))]
+        assert all(same) if frozen else not all(same)
+        assert int(new.env_steps) == 200 and int(new.epoch) == 1  # collection and the epoch count go on
 
 
 def test_every_hyperparameter_reaches_the_config_from_the_cli():
