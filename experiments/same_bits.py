@@ -62,8 +62,21 @@ def compare(ref: Path, new: Path) -> bool:
             same = False
             continue
         ra, rb = _rows(a), _rows(b)
-        if ra == rb and _summary(a) == _summary(b):
-            print(f"{name}: same ({len(ra)} rows)")
+        # Fields only one side has (added or removed by the change) are named, and every shared one compared.
+        added = sorted({k for r in rb for k in r} - {k for r in ra for k in r}
+                       | {f"summary.{k}" for m in _summary(b).get("members", []) for k in m}
+                       - {f"summary.{k}" for m in _summary(a).get("members", []) for k in m})
+        removed = sorted({k for r in ra for k in r} - {k for r in rb for k in r})
+        shared = {k for r in ra for k in r} & {k for r in rb for k in r}
+        ra = [{k: v for k, v in r.items() if k in shared} for r in ra]
+        rb = [{k: v for k, v in r.items() if k in shared} for r in rb]
+        sa, sb = _summary(a), _summary(b)
+        for x, y in zip(sa.get("members", []), sb.get("members", [])):
+            for k in set(x) ^ set(y):
+                x.pop(k, None), y.pop(k, None)
+        if ra == rb and sa == sb and len(ra) == len(rb):
+            changes = "".join(f"; {what}: {', '.join(keys)}" for what, keys in (("new", added), ("gone", removed)) if keys)
+            print(f"{name}: same ({len(ra)} rows){changes}")
             continue
         same = False
         first = next(((x["epoch"], x["member"], [k for k in x if x[k] != y.get(k)]) for x, y in zip(ra, rb) if x != y),
