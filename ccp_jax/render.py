@@ -122,11 +122,16 @@ def rollout(env: Env, policy: Callable, key: jax.Array, n: int, max_steps: int) 
 def renderer(env: Env, name: str) -> Draw:
     """The env's render hook (`envs_mjx.frames`); a RenderError naming env `name` and how to give it one if it
     has none. Nothing is drawn here (`check_draws` draws one frame)."""
-    draw = getattr(env, "render_frames", None)
-    if not callable(draw):
+    try:
+        draw = env.render_frames
+    except AttributeError as err:
+        # A wrapper's hook (StageWrapper's) says why its inner env cannot be drawn; a plain missing method does not.
+        why = f" ({err})" if isinstance(getattr(type(env), "render_frames", None), property) else ""
         raise RenderError(
-            f"env {name!r} ({type(env).__name__}) cannot be drawn: give it a method render_frames(states) -> "
-            "uint8[T, H, W, 3] that draws one episode's stacked states (docs/own-task.md#videos)")
+            f"env {name!r} ({type(env).__name__}) cannot be drawn{why}: give it a method render_frames(states) -> "
+            "uint8[T, H, W, 3] that draws one episode's stacked states (docs/own-task.md#videos)") from None
+    if not callable(draw):
+        raise RenderError(f"env {name!r} ({type(env).__name__}): render_frames is not callable")
     return draw
 
 

@@ -164,6 +164,20 @@ def test_an_env_that_cannot_be_drawn_is_refused_before_training(tmp_path):
     assert not any((out / name).exists() for name in ("config.json", "metrics.jsonl", "checkpoints", "tb"))
 
 
+def test_a_user_env_is_drawn_through_its_render_hook():
+    from user_env_module import make_drawn  # tests/ is on sys.path (conftest)
+
+    env = make_drawn()
+    forward = jax.jit(lambda obs, stage: jnp.ones(obs.shape[:-1] + (1,)))
+    ep, = render.rollout(env, forward, jax.random.PRNGKey(0), n=1, max_steps=60)
+    assert ep.success and list(np.unique(ep.stage)) == [0, 1]  # 0.25 per step: through both stages
+    frames = render.frames_of(render.renderer(env, "user_env_module:make_drawn"), ep, "user_env_module:make_drawn")
+    assert frames.shape == (ep.steps + 1, 240, 320, 3) and np.any(frames[0] != frames[-1])
+    with pytest.raises(render.RenderError, match=r"render_frames returned uint8\[2, 240, 320, 3\], expected "
+                                                 r"uint8\[\d+, H, W, 3\]"):
+        render.frames_of(lambda states: frames[:2], ep, "user_env_module:make_drawn")
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--video-every", "1", "--video-members", "2"], r"^video_members: the grid has members 0\.\.1, got 2"),
     (["--video-every", "1", "--video-members", "1", "1"], r"^video_members: members must be distinct"),
