@@ -94,12 +94,11 @@ class Args:
     """Write TensorBoard event files, one folder per grid member (DIR/tb/member_K)."""
     wandb_project: Optional[str] = None
     """Also log to this Weights & Biases project (needs `pip install wandb`)."""
-    video_every: Optional[int] = None
-    """Every K epochs, a video of one deterministic evaluation episode of each --video-members member, with the
-    stage and η on every frame: DIR/videos/epoch_N_member_K.mp4, also logged to TensorBoard and W&B at the epoch's
-    env steps (docs/videos.md). 0: none. Default 0, or with --resume the resumed run's."""
-    video_members: Optional[tuple[int, ...]] = None
-    """The grid members --video-every films. Default 0, or with --resume the resumed run's."""
+    video_every: Annotated[Optional[int], tyro.conf.arg(help_behavior_hint="(default: 0, or the resumed run's)")] = None
+    """Every K epochs, a video of one deterministic evaluation episode of each --video-members member with the stage and η on every frame: DIR/videos/epoch_N_member_K.mp4, also logged to TensorBoard and W&B at the epoch's env steps (docs/videos.md). 0: none."""
+    video_members: Annotated[Optional[tuple[int, ...]],
+                             tyro.conf.arg(help_behavior_hint="(default: 0, or the resumed run's)")] = None
+    """The grid members --video-every films (numbered as in summary.json)."""
     settings: Annotated[Any, tyro.conf.arg(name=""), tyro.conf.OmitArgPrefixes] = dataclasses.field(default_factory=dict)
     """The `Config` settings the command line gives, by flat name (`parse_args`); the others are the preset's (or
     the resumed run's). Their flags are shown with these options and in one group per section (`_REGISTRY`)."""
