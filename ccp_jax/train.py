@@ -39,6 +39,7 @@ from ccp_jax.config import (PRESETS, SECTION_OF, SECTIONS, Config, ConfigError, 
 from ccp_jax.eta import EtaAutoRule, parse_eta, parse_eta_vector
 from ccp_jax.envs import make_env, user_env
 from ccp_jax.grid import check_members_at_once, make_grid_train
+from ccp_jax.learner import make_networks
 from ccp_jax.tp.primitives import primitives_config
 from ccp_jax.tp.trainer import make_tp_grid
 
@@ -362,19 +363,20 @@ def run(config: Config, out: Path, progress: bool = True, resume: bool = False,
     """
     video.check_options(config, video_every, video_members)
     env = make_env(config)
-    if video_every:
-        video.check_renderable(config, env)
+    # Refuses an env it cannot draw, before anything is written or compiled.
+    videos = (video.Videos(config, env, make_networks(config, env.action_size).actor, out, video_every, video_members)
+              if video_every else None)
     sinks = loggers.make_loggers(out, config, tensorboard, wandb_project)  # fails before compiling
     options = {"checkpoint_every": checkpoint_every, "video_every": video_every, "video_members": list(video_members)}
     try:
         return _train(config, env, out, progress, resume, options, sinks, members_at_once,
-                      devices or grid_devices(config.grid_size))
+                      devices or grid_devices(config.grid_size), videos)
     finally:
         sinks.close()
 
 
-def _train(config: Config, env, out: Path, progress: bool, resume: bool, options: dict,
-           sinks: loggers.Loggers, members_at_once: Optional[int], devices: list) -> dict:
+def _train(config: Config, env, out: Path, progress: bool, resume: bool, options: dict, sinks: loggers.Loggers,
+           members_at_once: Optional[int], devices: list, videos: Optional[video.Videos]) -> dict:
     """`run`'s training loop; `options`: the run options run.json keeps (`RUN_DEFAULTS`' names)."""
     metrics_path = out / "metrics.jsonl"
     rows = outputs.read_rows(metrics_path, field="resume") if resume else []  # a damaged file stops us before tracing
@@ -383,8 +385,6 @@ def _train(config: Config, env, out: Path, progress: bool, resume: bool, options
     eta, seed = config.grid_arrays()
     lead = jax.process_index() == 0  # with several hosts, one writes the files; all save checkpoints
     mngr = checkpoint.manager(out)
-    videos = (video.Videos(config, env, trainer.networks.actor, out, options["video_every"], options["video_members"])
-              if options["video_every"] else None)
     start = time.time()
     if resume:
         first_epoch, state, rows = _restore(config, trainer, mngr, rows, seed)

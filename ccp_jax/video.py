@@ -82,8 +82,8 @@ class Videos:
         if not every:
             raise ValueError("Videos needs every >= 1 (0: make no Videos)")
         self.config, self.out, self.every, self.members = config, Path(out), every, tuple(members)
-        self.draw = render.renderer(env, config.task.env)
         check_renderable(config, env)
+        self.draw = render.renderer(env, config.task.env)
         self._run = render.episode_program(env, render.acting(config, actor), config.task.max_episode_steps)
         _, seeds = config.grid_arrays()
         # One fixed start per member, so its videos show the same episode start as training goes on.
