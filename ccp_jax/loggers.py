@@ -30,6 +30,9 @@ class Sink(Protocol):
     def video(self, member: int, path: Path, frames: np.ndarray, fps: float, env_steps: int) -> None:
         """Member `member`'s video at `env_steps`: the file written (`path`) and its frames uint8[T, H, W, 3]."""
 
+    def resume(self, env_steps: int) -> None:
+        """A resumed run trains again from `env_steps`: what was logged after it is superseded."""
+
     def close(self) -> None: ...
 
 
@@ -81,6 +84,15 @@ class TensorBoardLogger:
         writer._get_file_writer().add_summary(Summary(value=[Summary.Value(tag="video", image=image)]), env_steps)
         writer.flush()
 
+    def resume(self, env_steps: int) -> None:
+        """Marks a restart after `env_steps`: TensorBoard then hides the earlier files' events of later steps
+        (those epochs are trained and logged again), as tensorboardX's purge_step does for a new writer."""
+        from tensorboardX.proto.event_pb2 import Event, SessionLog
+
+        for writer in self.writers:
+            writer._get_file_writer().add_event(Event(session_log=SessionLog(status=SessionLog.START)), step=env_steps + 1)
+            writer.flush()
+
     def close(self) -> None:
         for writer in self.writers:
             writer.close()
@@ -110,6 +122,9 @@ class WandbLogger:
         """The video file as `member_K/video`, at the step of the epoch's metrics."""
         self.run.log({f"member_{member}/video": self.wandb.Video(str(path))}, step=env_steps)
 
+    def resume(self, env_steps: int) -> None:
+        pass  # a resumed run is a new W&B run: nothing of it to supersede
+
     def close(self) -> None:
         self.run.finish()
 
@@ -127,6 +142,10 @@ class Loggers:
     def video(self, member: int, path: Path, frames: np.ndarray, fps: float, env_steps: int) -> None:
         for sink in self.sinks:
             sink.video(member, path, frames, fps, env_steps)
+
+    def resume(self, env_steps: int) -> None:
+        for sink in self.sinks:
+            sink.resume(env_steps)
 
     def close(self) -> None:
         for sink in self.sinks:

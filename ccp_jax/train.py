@@ -392,6 +392,7 @@ def _train(config: Config, env, out: Path, progress: bool, resume: bool, options
             outputs.write_rows(metrics_path, rows)
             (out / outputs.COMPACTED).unlink(missing_ok=True)  # a compacted run's rows are raw again, to append to
             video.forget_after(out, first_epoch)
+            sinks.resume(first_epoch * config.budget.steps_per_epoch)
     else:
         first_epoch, state = 0, trainer.init(seed)
     start -= sum(r["epoch_wall_s"] for r in rows if r["member"] == 0)  # a resumed run's earlier epochs count too

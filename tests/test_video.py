@@ -93,8 +93,8 @@ def test_the_caption_draws_the_stage_and_its_eta_on_each_frame():
         render.caption(plain, "header", lines[:1])
 
 
-def _video_events(folder: Path) -> list[tuple[int, bytes]]:
-    """(step, encoded image) of every image summary tagged `video` in the event files in `folder`."""
+def _events(folder: Path) -> list:
+    """Every `Event` in the event files in `folder`, file by file (raw TFRecord read)."""
     from tensorboardX.proto import event_pb2
 
     found = []
@@ -102,10 +102,14 @@ def _video_events(folder: Path) -> list[tuple[int, bytes]]:
         data, i = path.read_bytes(), 0
         while i < len(data):
             (n,) = struct.unpack("<Q", data[i:i + 8])  # record: length, crc, payload, crc
-            event = event_pb2.Event.FromString(data[i + 12:i + 12 + n])
+            found.append(event_pb2.Event.FromString(data[i + 12:i + 12 + n]))
             i += 12 + n + 4
-            found += [(event.step, v.image.encoded_image_string) for v in event.summary.value if v.tag == "video"]
     return found
+
+
+def _video_events(folder: Path) -> list[tuple[int, bytes]]:
+    """(step, encoded image) of every image summary tagged `video` in the event files in `folder`."""
+    return [(e.step, v.image.encoded_image_string) for e in _events(folder) for v in e.summary.value if v.tag == "video"]
 
 
 def test_tensorboard_gets_each_video_at_its_epochs_env_steps(trained):
@@ -153,6 +157,10 @@ def test_resume_keeps_the_video_options_and_films_only_the_epochs_it_trains(trai
     assert sorted(p.name for p in (run / "videos").iterdir()) == [
         f"epoch_{e}_member_{k}.mp4" for e in (*EPOCHS, 3) for k in sorted(MEMBERS)]
     assert {name: (run / "videos" / name).stat().st_mtime_ns for name in kept} == kept  # not filmed again
+    # TensorBoard is told the run restarted after epoch 2, so it hides anything logged later before the resume.
+    restarts = [e.step for e in _events(run / "tb" / "member_0") if e.session_log.status == e.session_log.START]
+    assert restarts == [2 * 200 + 1]
+    assert [step for step, _ in _video_events(run / "tb" / "member_0")] == [200, 400, 600]
 
 
 def test_an_env_that_cannot_be_drawn_is_refused_before_training(tmp_path):
