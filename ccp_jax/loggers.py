@@ -89,8 +89,9 @@ class TensorBoardLogger:
         (those epochs are trained and logged again), as tensorboardX's purge_step does for a new writer."""
         from tensorboardX.proto.event_pb2 import Event, SessionLog
 
+        restart = SessionLog(status=SessionLog.START)
         for writer in self.writers:
-            writer._get_file_writer().add_event(Event(session_log=SessionLog(status=SessionLog.START)), step=env_steps + 1)
+            writer._get_file_writer().add_event(Event(session_log=restart), step=env_steps + 1)
             writer.flush()
 
     def close(self) -> None:

@@ -141,7 +141,8 @@ def frames_of(draw: Draw, episode: Episode, name: str) -> np.ndarray:
     frames = np.asarray(draw(episode.states))
     expected = f"uint8[{episode.steps + 1}, H, W, 3]"
     if frames.dtype != np.uint8 or frames.ndim != 4 or frames.shape[0] != episode.steps + 1 or frames.shape[-1] != 3:
-        raise RenderError(f"env {name!r}: render_frames returned {frames.dtype}{list(frames.shape)}, expected {expected}")
+        raise RenderError(f"env {name!r}: render_frames returned {frames.dtype}{list(frames.shape)}, "
+                          f"expected {expected}")
     return frames
 
 

@@ -109,7 +109,8 @@ def _events(folder: Path) -> list:
 
 def _video_events(folder: Path) -> list[tuple[int, bytes]]:
     """(step, encoded image) of every image summary tagged `video` in the event files in `folder`."""
-    return [(e.step, v.image.encoded_image_string) for e in _events(folder) for v in e.summary.value if v.tag == "video"]
+    return [(e.step, v.image.encoded_image_string) for e in _events(folder) for v in e.summary.value
+            if v.tag == "video"]
 
 
 def test_tensorboard_gets_each_video_at_its_epochs_env_steps(trained):
