@@ -7,12 +7,16 @@ optionally, Weights & Biases.
 
 Every sink takes the metrics.jsonl rows of one epoch (one dict per grid member) and logs
 their numbers against `env_steps`; a per-agent list `name` becomes tags `name/agent_n`.
+Videos made during training (`ccp_jax.video`) go to `video`, at the same env-step axis.
 """
 from __future__ import annotations
 
 import importlib.util
 from pathlib import Path
 from typing import Optional, Protocol, Sequence
+
+import imageio.v3 as iio
+import numpy as np
 
 from ccp_jax.config import Config
 
@@ -22,6 +26,9 @@ ID_FIELDS = ("member", "seed", "eta", "algo", "epoch", "env_steps")
 
 class Sink(Protocol):
     def write(self, rows: Sequence[dict]) -> None: ...
+
+    def video(self, member: int, path: Path, frames: np.ndarray, fps: float, env_steps: int) -> None:
+        """Member `member`'s video at `env_steps`: the file written (`path`) and its frames uint8[T, H, W, 3]."""
 
     def close(self) -> None: ...
 
@@ -67,28 +74,46 @@ class TensorBoardLogger:
         for writer in self.writers:
             writer.flush()  # once per epoch, so a crashed run keeps its curves
 
+    def video(self, member: int, path: Path, frames: np.ndarray, fps: float, env_steps: int) -> None:
+        """The frames as an animated GIF under the tag `video` (TensorBoard's images tab plays it)."""
+        from tensorboardX.summary import Summary
+
+        # What tensorboardX's add_video writes, encoded here: add_video needs moviepy, which ccp-jax does not.
+        gif = iio.imwrite("<bytes>", frames, extension=".gif", duration=1000 / fps, loop=0)
+        t, height, width, channels = frames.shape
+        image = Summary.Image(height=height, width=width, colorspace=channels, encoded_image_string=gif)
+        writer = self.writers[member]
+        writer._get_file_writer().add_summary(Summary(value=[Summary.Value(tag="video", image=image)]), env_steps)
+        writer.flush()
+
     def close(self) -> None:
         for writer in self.writers:
             writer.close()
 
 
 class WandbLogger:
-    """One W&B run for the whole grid; member K's tags are logged as `member_K/tag`, step = epoch."""
+    """One W&B run for the whole grid; member K's tags are logged as `member_K/tag`, step = env_steps (the
+    axis TensorBoard's curves use; every member takes the same steps per epoch)."""
 
     def __init__(self, out: Path, config: Config, project: str):
         import wandb
 
+        self.wandb = wandb
         self.run = wandb.init(project=project, name=Path(out).name, dir=str(out), config=config.to_dict())
 
     def write(self, rows: Sequence[dict]) -> None:
         if not rows:
             return
-        # W&B wants one log call per step with a monotonic step: the epoch, shared by all members.
+        # W&B wants one log call per step with a monotonic step: the epoch's env steps, shared by all members.
         data = {}
         for row in rows:
-            tags = {**scalars(row), "env_steps": row["env_steps"]}
+            tags = {**scalars(row), "epoch": row["epoch"]}
             data.update({f"member_{row['member']}/{tag}": value for tag, value in tags.items()})
-        self.run.log(data, step=rows[0]["epoch"])
+        self.run.log(data, step=rows[0]["env_steps"])
+
+    def video(self, member: int, path: Path, frames: np.ndarray, fps: float, env_steps: int) -> None:
+        """The video file as `member_K/video`, at the step of the epoch's metrics."""
+        self.run.log({f"member_{member}/video": self.wandb.Video(str(path))}, step=env_steps)
 
     def close(self) -> None:
         self.run.finish()
@@ -103,6 +128,10 @@ class Loggers:
     def write(self, rows: Sequence[dict]) -> None:
         for sink in self.sinks:
             sink.write(rows)
+
+    def video(self, member: int, path: Path, frames: np.ndarray, fps: float, env_steps: int) -> None:
+        for sink in self.sinks:
+            sink.video(member, path, frames, fps, env_steps)
 
     def close(self) -> None:
         for sink in self.sinks:

@@ -2,7 +2,7 @@
 
     python -m ccp_jax.train --env maze --rooms 3 --algo csac --eta 0.1 0.5 0.9 --seeds 5 --out runs/x
 
-The host loop below only logs, shows progress and saves; each epoch of every
+The host loop below only logs, shows progress, saves and (with --video-every) films; each epoch of every
 grid member is one call of the compiled, vmapped `train_step`.
 """
 from __future__ import annotations
@@ -33,13 +33,14 @@ import tyro
 from jax.experimental import multihost_utils
 from tqdm.auto import tqdm
 
-from ccp_jax import checkpoint, loggers, outputs
+from ccp_jax import checkpoint, loggers, outputs, video
 from ccp_jax.devices import CpuDevices, grid_devices, host_cpu_tag, split_host_cpu
 from ccp_jax.config import (PRESETS, SECTION_OF, SECTIONS, Config, ConfigError, PresetName, make_config,
                              preset_settings)
 from ccp_jax.eta import EtaAutoRule, parse_eta, parse_eta_vector
 from ccp_jax.envs import make_env, user_env
 from ccp_jax.grid import check_members_at_once, make_grid_train
+from ccp_jax.learner import make_networks
 from ccp_jax.tp.primitives import primitives_config
 from ccp_jax.tp.trainer import make_tp_grid
 
@@ -95,6 +96,11 @@ class Args:
     """Write TensorBoard event files, one folder per grid member (DIR/tb/member_K)."""
     wandb_project: Optional[str] = None
     """Also log to this Weights & Biases project (needs `pip install wandb`)."""
+    video_every: Annotated[Optional[int], tyro.conf.arg(help_behavior_hint="(default: 0, or the resumed run's)")] = None
+    """Every K epochs, a video of one deterministic evaluation episode of each --video-members member with the stage and η on every frame: DIR/videos/epoch_N_member_K.mp4, also logged to TensorBoard and W&B at the epoch's env steps (docs/videos.md). 0: none."""
+    video_members: Annotated[Optional[tuple[int, ...]],
+                             tyro.conf.arg(help_behavior_hint="(default: 0, or the resumed run's)")] = None
+    """The grid members --video-every films (numbered as in summary.json)."""
     settings: Annotated[Any, tyro.conf.arg(name=""), tyro.conf.OmitArgPrefixes] = dataclasses.field(default_factory=dict)
     """The `Config` settings the command line gives, by flat name (`parse_args`); the others are the preset's (or
     the resumed run's). Their flags are shown with these options and in one group per section (`_REGISTRY`)."""
@@ -264,19 +270,26 @@ def check_per_agent_lengths(config: Config) -> None:
                               "agent use --eta")
 
 
-RUN_OPTIONS = "run.json"  # the run's options that are not settings of what it trains (the checkpoint interval)
-DEFAULT_CHECKPOINT_EVERY = 10
+RUN_OPTIONS = "run.json"  # the run's options that are not settings of what it trains, which --resume keeps
+# Each run option's value when neither the command line nor run.json gives it (run.json from before it existed).
+RUN_DEFAULTS = {"checkpoint_every": 10, "video_every": 0, "video_members": (0,)}
 
 
-def saved_checkpoint_every(run_dir: Path) -> int:
-    """The checkpoint interval the run in `run_dir` was started with (10 for runs from before it was saved)."""
-    path = Path(run_dir) / RUN_OPTIONS
-    if not path.exists():
-        return DEFAULT_CHECKPOINT_EVERY
-    try:
-        return int(json.loads(path.read_text())["checkpoint_every"])
-    except (ValueError, KeyError, TypeError) as err:
-        raise ConfigError("resume", f"{path} is unreadable ({err}); repair it or give --checkpoint-every") from None
+def run_options(args: Args, run_dir: Optional[Path] = None) -> dict[str, Any]:
+    """The run options (`RUN_DEFAULTS`' names): those the arguments give, else the resumed run's in `run_dir`'s
+    run.json, else the defaults."""
+    saved = dict(RUN_DEFAULTS)
+    path = None if run_dir is None else Path(run_dir) / RUN_OPTIONS
+    if path is not None and path.exists() and any(getattr(args, name) is None for name in RUN_DEFAULTS):
+        try:
+            found = json.loads(path.read_text())
+            saved.update({"checkpoint_every": int(found["checkpoint_every"]),
+                          "video_every": int(found.get("video_every", saved["video_every"])),
+                          "video_members": tuple(int(k) for k in found.get("video_members", saved["video_members"]))})
+        except (ValueError, KeyError, TypeError) as err:
+            raise ConfigError("resume", f"{path} is unreadable ({err}); repair it or give --checkpoint-every, "
+                                        "--video-every and --video-members") from None
+    return {name: saved[name] if getattr(args, name) is None else getattr(args, name) for name in RUN_DEFAULTS}
 
 
 def prepare_out(out: Optional[Path], config: Config) -> Path:
@@ -376,42 +389,51 @@ def _restore(mngr: checkpoint.ocp.CheckpointManager, trainer: Any, seed: np.ndar
 
 def run(config: Config, out: Path, progress: bool = True, resume: bool = False,
         checkpoint_every: int = 10, tensorboard: bool = True, wandb_project: Optional[str] = None,
-        members_at_once: Optional[int] = None, devices: Optional[list] = None) -> dict:
-    """Trains the grid of `config` in `out`: config.json, metrics.jsonl, summary.json, checkpoints/.
+        members_at_once: Optional[int] = None, devices: Optional[list] = None, video_every: int = 0,
+        video_members: Sequence[int] = (0,)) -> dict:
+    """Trains the grid of `config` in `out`: config.json, metrics.jsonl, summary.json, checkpoints/ (videos/).
 
-    With `resume`, continues from the latest checkpoint in `out`; metrics rows
+    With `resume`, continues from the latest checkpoint in `out`; metrics rows (and videos)
     written after that checkpoint are replaced by their recomputation (identical on the same device split).
     `members_at_once`: see `GridTrainer` (default: `devices.default_members_at_once`).
     `devices`: what the grid trains on (default: `grid_devices`); a resumed run may use another split
     than its checkpoint's (`checkpoint.restore` pads the grid anew).
+    `video_every`, `video_members`: `ccp_jax.video`; an env that cannot be drawn is refused before training.
     Returns the summary (per member: final success = mean of the last 10 epochs).
     """
-    # A refused resume (damaged rows, a hole before the checkpoints) stops here: before compiling or logging.
+    video.check_options(config, video_every, video_members)
+    # A refused resume (damaged rows, a hole before the checkpoints) or an env that cannot be drawn stops here,
+    # before anything is written, compiled or logged.
     rows = outputs.read_rows(out / outputs.METRICS, field="resume") if resume else []
+    env = make_env(config)
+    videos = (video.Videos(config, env, make_networks(config, env.action_size).actor, out, video_every, video_members)
+              if video_every else None)
     mngr = checkpoint.manager(out)
     resume_epoch = resume_point(mngr, rows, config.grid_size) if resume else None
     # TensorBoard hides the points a crashed run logged past the checkpoint it resumes from (trained again).
     restart = next((r["env_steps"] for r in rows if r["epoch"] == resume_epoch), None)
     sinks = loggers.make_loggers(out, config, tensorboard, wandb_project, purge_step=restart and restart + 1)
+    options = {"checkpoint_every": checkpoint_every, "video_every": video_every, "video_members": list(video_members)}
     try:
-        return _train(config, out, progress, resume, rows, mngr, resume_epoch, checkpoint_every, sinks,
-                      members_at_once, devices or grid_devices(config.grid_size))
+        return _train(config, env, out, progress, mngr, (rows, resume_epoch) if resume else None, options, sinks,
+                      members_at_once, devices or grid_devices(config.grid_size), videos)
     finally:
         sinks.close()
 
 
-def _train(config: Config, out: Path, progress: bool, resume: bool, rows: list[dict],
-           mngr: checkpoint.ocp.CheckpointManager, resume_epoch: Optional[int], checkpoint_every: int,
-           sinks: loggers.Loggers, members_at_once: Optional[int], devices: list) -> dict:
-    """`run` once the folder is checked; when resuming, `rows` so far and the checkpoint to start from."""
+def _train(config: Config, env, out: Path, progress: bool, mngr: checkpoint.ocp.CheckpointManager,
+           resumed: Optional[tuple[list[dict], Optional[int]]], options: dict, sinks: loggers.Loggers,
+           members_at_once: Optional[int], devices: list, videos: Optional[video.Videos]) -> dict:
+    """`run`'s training loop once the folder is checked; `resumed`: the rows so far and the checkpoint to start
+    from (`resume_point`); `options`: the run options run.json keeps (`RUN_DEFAULTS`' names)."""
     metrics_path = out / outputs.METRICS
-    env = make_env(config)
+    rows, resume_epoch = resumed or ([], None)
     make = make_tp_grid if config.algo == "tp" else make_grid_train
     trainer = make(config, env, devices, members_at_once=members_at_once)
     eta, seed = config.grid_arrays()
     lead = jax.process_index() == 0  # with several hosts, one writes the files; all save checkpoints
     start = time.time()
-    if resume:
+    if resumed is not None:
         first_epoch, state = _restore(mngr, trainer, seed, config.grid_size, resume_epoch, lead)
         if first_epoch > config.num_epochs:
             raise ConfigError("total_steps", f"the run already has {first_epoch} epochs, more than {config.num_epochs}")
@@ -421,13 +443,15 @@ def _train(config: Config, out: Path, progress: bool, resume: bool, rows: list[d
         if lead:
             outputs.write_rows(metrics_path, rows)
             (out / outputs.COMPACTED).unlink(missing_ok=True)  # a compacted run's rows are raw again, to append to
+            video.forget_after(out, first_epoch)
     else:
         first_epoch, state = 0, trainer.init(seed)
     start -= sum(r["epoch_wall_s"] for r in rows if r["member"] == 0)  # a resumed run's earlier epochs count too
     if lead:
         outputs.write_json(out / "config.json", config.to_dict())
-        outputs.write_json(out / RUN_OPTIONS, {"checkpoint_every": checkpoint_every})  # what --resume keeps
+        outputs.write_json(out / RUN_OPTIONS, options)  # what --resume keeps
 
+    every = options["checkpoint_every"]
     bar = tqdm(range(first_epoch, config.num_epochs), initial=first_epoch, total=config.num_epochs,
                desc=f"{config.algo} {config.task.env} x{config.grid_size}", unit="epoch",
                disable=not (progress and lead), dynamic_ncols=True)
@@ -449,7 +473,11 @@ def _train(config: Config, out: Path, progress: bool, resume: bool, rows: list[d
                 diverged.add(row["member"])
                 if lead:
                     bar.write(outputs.diverged_warning(row["member"], row["seed"], row["env_steps"], why))
-        if epoch + 1 == config.num_epochs or (checkpoint_every and (epoch + 1) % checkpoint_every == 0):
+        if videos is not None and videos.due(epoch + 1):  # before the checkpoint: a crash here films it again
+            actors = to_host(state.agents.actor)  # on every host: a multi-host gather is collective
+            if lead:
+                videos.record(epoch + 1, actors, epoch_rows, sinks)
+        if epoch + 1 == config.num_epochs or (every and (epoch + 1) % every == 0):
             checkpoint.save(mngr, epoch + 1, state)
         success = np.asarray(metrics.eval.success_rate)
         bar.set_postfix(steps=f"{int(metrics.env_steps.max()):,}", best_success=f"{success.max():.2f}",
@@ -501,20 +529,20 @@ def main(argv: Optional[list[str]] = None) -> dict:
         enable_compile_cache()
     if args.resume is not None:
         config, out = resume_config(args), args.resume
-        every = saved_checkpoint_every(out) if args.checkpoint_every is None else args.checkpoint_every
+        options = run_options(args, out)
     else:
         config = config_from_args(args)
+        options = run_options(args)
+        video.check_options(config, options["video_every"], options["video_members"])  # before the folder exists
         out = prepare_out(args.out, config)
-        every = DEFAULT_CHECKPOINT_EVERY if args.checkpoint_every is None else args.checkpoint_every
     if jax.process_count() > 1:  # every host checks the folder before any host writes to it
         multihost_utils.sync_global_devices("run folder checked")
     devices = grid_devices(config.grid_size)
     print(f"{'Resuming' if args.resume else 'Training'} {config.grid_size} run(s) of {config.algo} on "
           f"{config.task.env} ({config.num_stages} stages, {config.num_epochs} epochs of {config.budget.steps_per_epoch} steps) on "
           f"{len(devices)} {devices[0].platform} device{'s' * (len(devices) > 1)} -> {out}")
-    summary = run(config, out, progress=args.progress, resume=args.resume is not None,
-                  checkpoint_every=every, tensorboard=args.tensorboard,
-                  wandb_project=args.wandb_project, members_at_once=hosts.members_at_once, devices=devices)
+    summary = run(config, out, progress=args.progress, resume=args.resume is not None, tensorboard=args.tensorboard,
+                  wandb_project=args.wandb_project, members_at_once=hosts.members_at_once, devices=devices, **options)
     print(outputs.summary_table(summary))
     print(f"wall time {summary['wall_s']:.0f} s; files in {out}")
     return summary

@@ -18,6 +18,10 @@ This package knows nothing of agents. Every env here follows one contract
 * ``state.info["truncation"]``: float32, 1.0 when it ended only because the
   time limit (``episode_length`` steps, counted in ``info["steps"]``) was hit;
   truncation is not a termination and must not stop bootstrapping.
+
+Optional, for videos: ``env.render_frames(states) -> uint8[T, H, W, 3]``, one
+RGB frame per state of an episode's ``State``s stacked along a leading time
+axis (host numpy leaves [T, ...]); `envs_mjx.frames` holds the built-in envs'.
 """
 
 import contextlib

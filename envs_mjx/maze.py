@@ -247,6 +247,13 @@ class Maze(Env):
     def backend(self) -> str:
         return "jax"
 
+    def render_frames(self, states: State) -> np.ndarray:
+        """The contract's render hook: one episode's stacked states (leaves [T, ...]) drawn top-down,
+        uint8[T, H, W, 3] (`envs_mjx.frames.maze_frames`; matplotlib, no OpenGL)."""
+        from envs_mjx.frames import maze_frames  # local: matplotlib loads only for videos
+
+        return maze_frames(self, states)
+
     def reset(self, rng: jax.Array) -> State:
         """A fresh episode at x ~ U[0.5, 1], y ~ U[1.25, 1.75], heading ~ U[-pi/4, pi/4]."""
         g = self.geometry

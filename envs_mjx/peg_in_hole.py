@@ -104,6 +104,7 @@ except Exception as _err:  # mujoco picks its GL backend at import; a broken one
 from brax.envs.base import Env, State
 
 from envs_mjx import XLA_CPU_FLAG, cpu_xla_flags, warn_if_cpu_unconfigured  # noqa: F401  (re-exported)
+from envs_mjx.frames import mujoco_frames
 from mujoco import mjx
 
 ASSET = Path(__file__).resolve().parent / "assets" / "panda_peg.xml"
@@ -385,15 +386,13 @@ class PegInHole(Env):
     def peg_centre(self, data) -> jax.Array:
         return data.xpos[self._peg_body]
 
+    def render_frames(self, states: State) -> np.ndarray:
+        """The contract's render hook: one episode's stacked states (leaves [T, ...]) as MuJoCo frames from the
+        "side" camera, uint8[T, 240, 320, 3] (`render_frames`)."""
+        return render_frames(self, states.pipeline_state.qpos)
+
 
 # ----- offscreen rendering -------------------------------------------------------------
-_GL_HELP = (
-    "offscreen rendering needs an OpenGL backend chosen before `mujoco` is imported: "
-    "MUJOCO_GL=egl (libEGL with a Mesa or NVIDIA driver) or MUJOCO_GL=osmesa (on Debian/Ubuntu: "
-    "`apt-get install libosmesa6`; also PYOPENGL_PLATFORM=osmesa). Current MUJOCO_GL={!r}."
-)
-
-
 def render_frames(
     env: PegInHole,
     pipeline_states: Any,
@@ -401,7 +400,7 @@ def render_frames(
     height: int = 240,
     width: int = 320,
 ) -> np.ndarray:
-    """Render MJX states to uint8 RGB frames, shape [T, height, width, 3].
+    """Render MJX states to uint8 RGB frames, shape [T, height, width, 3] (`envs_mjx.frames.mujoco_frames`).
 
     ``pipeline_states``: a sequence of ``mjx.Data`` (or ``mujoco.MjData``), or one
     ``mjx.Data`` whose leaves have a leading time axis (e.g. the stacked
@@ -409,86 +408,13 @@ def render_frames(
     array of qpos, shape [T, nq].
     Cameras in the scene: "side" (close-up of peg and hole), "wide", "top".
     """
-    m = env.mj_model
     if isinstance(pipeline_states, (list, tuple)):
         qpos = np.stack([np.asarray(s.qpos) for s in pipeline_states])
     elif hasattr(pipeline_states, "qpos"):
         qpos = np.asarray(pipeline_states.qpos)
     else:  # an array of qpos
         qpos = np.asarray(pipeline_states)
-    if qpos.ndim == 1:
-        qpos = qpos[None]
-    if qpos.ndim != 2 or qpos.shape[1] != m.nq:
-        raise ValueError(f"expected qpos of shape [T, {m.nq}], got {qpos.shape} (pass one environment's states)")
-    if width > m.vis.global_.offwidth or height > m.vis.global_.offheight:
-        raise ValueError(f"frame {width}x{height} exceeds the model's offscreen buffer "
-                         f"{m.vis.global_.offwidth}x{m.vis.global_.offheight}")
-    chosen = getattr(mujoco, "GLContext", None)  # the backend picked when mujoco was imported
-    if getattr(chosen, "__module__", "") == "mujoco.glfw" and not (
-        os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")
-    ):
-        # mujoco was imported before MUJOCO_GL was set and picked GLFW, which needs a display
-        # (and a failed GLFW attempt leaves MuJoCo's GL state unusable): make an EGL context here.
-        return _render_fallback(m, qpos, camera, height, width, first_error="GLFW without a display")
-    try:
-        renderer = mujoco.Renderer(m, height=height, width=width)
-    except Exception as err:  # noqa: BLE001 - the GL backend chosen when mujoco was imported failed
-        raise RuntimeError(_GL_HELP.format(os.environ.get("MUJOCO_GL")) + f" Cause: {err!r}") from err
-    d = mujoco.MjData(m)
-    frames = np.empty((qpos.shape[0], height, width, 3), np.uint8)
-    try:
-        for t, q in enumerate(qpos):
-            d.qpos[:] = q
-            mujoco.mj_forward(m, d)
-            renderer.update_scene(d, camera=camera)
-            frames[t] = renderer.render()
-    finally:
-        renderer.close()
-    return frames
-
-
-def _render_fallback(m, qpos, camera, height, width, first_error):
-    """Render with an EGL (then OSMesa) context made here, for processes where `mujoco` was
-    imported before MUJOCO_GL was set (its default, GLFW, needs a display)."""
-    errors = [f"MUJOCO_GL={os.environ.get('MUJOCO_GL')!r}: {first_error}"]
-    for backend in ("egl", "osmesa"):
-        try:
-            if os.environ.get("PYOPENGL_PLATFORM", backend) != backend:
-                raise RuntimeError(f"PYOPENGL_PLATFORM is {os.environ['PYOPENGL_PLATFORM']!r}")
-            os.environ["PYOPENGL_PLATFORM"] = backend
-            if backend == "egl":
-                from mujoco.egl import GLContext
-            else:
-                from mujoco.osmesa import GLContext
-            ctx = GLContext(width, height)
-            ctx.make_current()
-        except Exception as err:  # noqa: BLE001
-            errors.append(f"{backend}: {err!r}")
-            if os.environ.get("PYOPENGL_PLATFORM") == backend and "OpenGL" not in sys.modules:
-                del os.environ["PYOPENGL_PLATFORM"]
-            continue
-        try:
-            con = mujoco.MjrContext(m, mujoco.mjtFontScale.mjFONTSCALE_150)
-            mujoco.mjr_setBuffer(mujoco.mjtFramebuffer.mjFB_OFFSCREEN, con)
-            scn, opt, cam = mujoco.MjvScene(m, maxgeom=2000), mujoco.MjvOption(), mujoco.MjvCamera()
-            cam.type = mujoco.mjtCamera.mjCAMERA_FIXED
-            cam.fixedcamid = m.camera(camera).id if isinstance(camera, str) else int(camera)
-            rect = mujoco.MjrRect(0, 0, width, height)
-            d = mujoco.MjData(m)
-            rgb = np.empty((height, width, 3), np.uint8)
-            frames = np.empty((qpos.shape[0], height, width, 3), np.uint8)
-            for t, q in enumerate(qpos):
-                d.qpos[:] = q
-                mujoco.mj_forward(m, d)
-                mujoco.mjv_updateScene(m, d, opt, None, cam, mujoco.mjtCatBit.mjCAT_ALL, scn)
-                mujoco.mjr_render(rect, scn, con)
-                mujoco.mjr_readPixels(rgb, None, rect, con)
-                frames[t] = rgb[::-1]
-            con.free()
-            return frames
-        finally:
-            ctx.free()
-    raise RuntimeError(_GL_HELP.format(os.environ.get("MUJOCO_GL")) + " Tried: " + "; ".join(errors))
+    return mujoco_frames(env.mj_model, qpos, camera, height, width)
 
 
 def simulate_c(env: PegInHole, qpos0: np.ndarray, ctrls: Sequence[np.ndarray]) -> np.ndarray:

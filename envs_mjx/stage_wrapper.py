@@ -125,6 +125,33 @@ class StageWrapper(Env):
     def unwrapped(self) -> Env:
         return self.env.unwrapped
 
+    @property
+    def render_frames(self) -> Callable[[State], Any]:
+        """The contract's render hook (`envs_mjx.frames`) where the inner env can be drawn: its own `render_frames`
+        (given the inner states), else MuJoCo frames of a brax inner env's model (`env.sys.mj_model`, free camera,
+        uint8[T, 240, 320, 3]). Otherwise an AttributeError, so `hasattr(wrapper, "render_frames")` tells."""
+        inner_hook = getattr(self.env, "render_frames", None)
+        if inner_hook is not None:
+            return lambda states: inner_hook(self._inner_stacked(states))
+        model = getattr(getattr(self.env, "sys", None), "mj_model", None)
+        if model is None:
+            raise AttributeError(f"{type(self.env).__name__} (inside StageWrapper) has no render_frames and no MuJoCo "
+                                 "model to draw")
+
+        def draw(states: State) -> Any:
+            from envs_mjx.frames import mujoco_frames  # local: only videos draw
+
+            return mujoco_frames(model, states.pipeline_state.q)
+
+        return draw
+
+    def _inner_stacked(self, states: State) -> State:
+        """The inner env's States of one episode, from its stacked `states` (leaves [T, ...])."""
+        keep: dict[str, Any] = states.info["inner"]
+        obs = states.obs[..., : self._inner_obs_size]
+        return State(pipeline_state=states.pipeline_state, obs=obs, reward=keep["reward"], done=keep["done"],
+                     metrics=dict(keep["metrics"]), info=dict(keep["info"]))
+
     def reset(self, rng: jax.Array) -> State:
         """Step 0: the inner reset, with the stage advanced past subtasks already achieved."""
         inner = self.env.reset(rng)

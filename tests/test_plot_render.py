@@ -230,13 +230,14 @@ def test_evaluate_cli_reevaluates_every_member_from_the_checkpoint(run_dir, conf
 def test_rollout_stops_at_done_and_maze_frames_follow_the_robot():
     env = Maze(rooms=2, episode_length=12)
     forward = jax.jit(lambda obs, stage: jnp.broadcast_to(jnp.array([1.0, 0.3]), obs.shape[:-1] + (2,)))
-    eps = render.rollout(env, forward, jax.random.PRNGKey(3), episodes=2, max_steps=20)
+    eps = render.rollout(env, forward, jax.random.PRNGKey(3), n=2, max_steps=20)
     for ep in eps:
         assert ep.steps == 12 and not ep.success  # truncated by the env at episode_length
-        assert ep.obs.shape == (13, env.observation_size) and ep.pose.shape == (13, 3)
-        np.testing.assert_allclose(ep.pose[:, :2] / [10.0, 5.0], ep.obs[:, 20:22], atol=1e-6)
-        assert ep.pose[-1, 0] > ep.pose[0, 0] + 1.0
-    frames = render.maze_frames(env, eps[0], "test  ")
+        pos = ep.states.pipeline_state.pos
+        assert ep.obs.shape == (13, env.observation_size) and pos.shape == (13, 2) and ep.reward[0] == 0
+        np.testing.assert_allclose(pos / [10.0, 5.0], ep.obs[:, 20:22], atol=1e-6)
+        assert pos[-1, 0] > pos[0, 0] + 1.0
+    frames = env.render_frames(eps[0].states)
     assert frames.shape == (13, 320, 576, 3) and frames.dtype == np.uint8
     assert all(np.any(a != b) for a, b in zip(frames[:-1], frames[1:]))
 
@@ -257,9 +258,13 @@ def test_write_video_mp4_or_gif_fallback(tmp_path, monkeypatch):
         render.write_video(tmp_path / "c.avi", frames, fps=5)
 
 
-def test_unsupported_env_is_refused_before_rollout():
-    with pytest.raises(render.RenderError, match="no renderer for Line"):
-        render.frame_renderer(Line())
+def test_an_env_without_render_hook_is_refused_before_rollout():
+    with pytest.raises(render.RenderError, match=r"env 'toy' \(Line\) cannot be drawn: give it a method render_frames"):
+        render.renderer(Line(), "toy")
+    from user_env_module import make  # a StageWrapper around an env with neither a hook nor a MuJoCo model
+
+    with pytest.raises(render.RenderError, match=r"\(Slider \(inside StageWrapper\) has no render_frames"):
+        render.renderer(make(), "user_env_module:make")
 
 
 def _gl_works() -> bool:
@@ -270,21 +275,32 @@ def _gl_works() -> bool:
     return subprocess.run([sys.executable, "-c", probe], capture_output=True, timeout=300).returncode == 0
 
 
-def test_peg_frames_through_render_frames():
+def _stacked_qpos(qpos: np.ndarray, field: str = "qpos") -> types.SimpleNamespace:
+    """The part of an episode's stacked states a MuJoCo hook reads: pipeline_state.<field> [T, nq]."""
+    return types.SimpleNamespace(pipeline_state=types.SimpleNamespace(**{field: qpos}))
+
+
+def test_peg_frames_through_its_render_hook():
     peg = pytest.importorskip("envs_mjx.peg_in_hole")
     if not _gl_works():
         pytest.skip("no OpenGL context for MuJoCo on this machine (set MUJOCO_GL=egl or osmesa)")
-    if not hasattr(peg, "render_frames"):
-        pytest.skip("envs_mjx.peg_in_hole has no render_frames")
     env = peg.PegInHole(episode_length=10)
-    qpos = np.tile(env.mj_model.qpos0, (3, 1)).astype(np.float32)
-    episode = render.Episode(obs=np.zeros((3, 1)), stage=np.zeros(3, np.int32), pose=qpos,
-                             reward=np.zeros(3), success=False)
-    try:
-        frames = render.frame_renderer(env)(episode, "")
-    except RuntimeError as err:  # no OpenGL for MuJoCo here
-        pytest.skip(str(err))
-    assert frames.shape[0] == 3 and frames.dtype == np.uint8 and frames.std() > 0
+    frames = env.render_frames(_stacked_qpos(np.tile(env.mj_model.qpos0, (3, 1)).astype(np.float32)))
+    assert frames.shape == (3, 240, 320, 3) and frames.dtype == np.uint8 and frames.std() > 5
+
+
+def test_pusher_frames_through_stage_wrapper_and_mujoco():
+    if not _gl_works():
+        pytest.skip("no OpenGL context for MuJoCo on this machine (set MUJOCO_GL=egl or osmesa)")
+    from envs_mjx.pusher import Pusher
+
+    env = Pusher(episode_length=10)
+    model = env.env.sys.mj_model
+    qpos = np.tile(model.qpos0, (2, 1)).astype(np.float32)
+    qpos[1, 0] += 0.8  # the shoulder turns: the arm moves between the frames
+    frames = render.renderer(env, "pusher")(_stacked_qpos(qpos, "q"))
+    assert frames.shape == (2, 240, 320, 3) and frames.dtype == np.uint8 and frames.std() > 5
+    assert np.abs(frames[0].astype(int) - frames[1].astype(int)).mean() > 1.0
 
 
 # ----- loggers -----------------------------------------------------------------------------------
@@ -340,6 +356,7 @@ def test_wandb_is_optional_and_used_when_asked(run_dir, config, tmp_path, monkey
     sink.write(rows)
     sink.close()
     (step, data), = logged
-    assert step == 1
+    assert step == rows[0]["env_steps"] == config.budget.steps_per_epoch  # the axis TensorBoard uses
+    assert data["member_1/epoch"] == 1
     assert data["member_1/success_rate"] == rows[1]["success_rate"]
     assert data["member_0/q_loss/agent_1"] == pytest.approx(rows[0]["q_loss"][1])

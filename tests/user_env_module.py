@@ -8,7 +8,10 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from brax.envs.base import Env, State
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
 
 from envs_mjx.stage_wrapper import StageSpec, StageWrapper
 
@@ -50,6 +53,28 @@ SPEC = StageSpec(
 def make() -> StageWrapper:
     """The factory `--env user_env_module:make` calls."""
     return StageWrapper(Slider(), SPEC, episode_length=50)
+
+
+class DrawnSlider(Slider):
+    """`Slider` with the contract's render hook, as docs/own-task.md#videos shows it."""
+
+    def render_frames(self, states: State) -> np.ndarray:
+        frames = []
+        for x in states.pipeline_state:  # the point's position per step
+            fig = Figure(figsize=(3.2, 2.4), dpi=100)  # 320 x 240
+            canvas = FigureCanvasAgg(fig)
+            ax = fig.add_subplot()
+            ax.set_xlim(0, 2)
+            ax.set_ylim(-1, 1)
+            ax.plot([x], [0], "o")
+            canvas.draw()
+            frames.append(np.asarray(canvas.buffer_rgba())[..., :3])
+        return np.stack(frames)
+
+
+def make_drawn() -> StageWrapper:
+    """The factory of a user env that can be drawn (`--env user_env_module:make_drawn`)."""
+    return StageWrapper(DrawnSlider(), SPEC, episode_length=50)
 
 
 class _StageSkipping(StageWrapper):
