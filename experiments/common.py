@@ -254,6 +254,13 @@ def with_interval(values: Sequence[float], aggregate: Callable[[Sequence[float]]
     return f"{aggregate(values):.2f} [{low:.2f}, {high:.2f}]"
 
 
+def mean_and_iqm(values: Sequence[float]) -> str:
+    """Two table cells: the seeds' mean and their IQM, each with its 95 % stratified-bootstrap interval."""
+    from ccp_jax import stats
+
+    return f"{with_interval(values, np.mean)} | {with_interval(values, stats.iqm)}"
+
+
 def improvement(x: Sequence[float], y: Sequence[float]) -> str:
     """'0.62 [0.25, 1.00]': P(a seed of x ends above a seed of y; ties count half) and its 95 % bootstrap interval."""
     from ccp_jax import stats

@@ -37,7 +37,7 @@ from typing import Literal, Optional
 import numpy as np
 
 from ccp_jax.eta import AUTO
-from common import (DOMAINS, SCALES, Scale, ScaleName, best_swept_eta, cli, eta_label, final_success, mean_std,
+from common import (DOMAINS, SCALES, Scale, ScaleName, best_swept_eta, cli, eta_label, final_success, mean_and_iqm,
                     merged_summary, read_json, results_folder, run_grid, swept_runs, write_text)
 from table1 import run_dir, train_domain
 
@@ -163,8 +163,8 @@ def domain_rows(out: Path, domain: str) -> list[str]:
     rows += one_variant_rows(out, domain, RAW_SUM_FRESH, "raw sum, fresh seeds {seeds}")
     rows += one_variant_rows(out, domain, RAMP, "ramp η = {eta}")
     rows += one_variant_rows(out, domain, RAMP_FRESH, "ramp η = {eta}, fresh seeds {seeds}")
-    return [f"| {domain} | {name} | {mean_std(values)} | {' '.join(f'{v:.2f}' for v in values)} | {first_text(f)} |"
-            for name, values, f in rows]
+    return [f"| {domain} | {name} | {mean_and_iqm(values)} | {' '.join(f'{v:.2f}' for v in values)} | "
+            f"{first_text(f)} |" for name, values, f in rows]
 
 
 def eta_star_drift(folders: list[Path]) -> dict[tuple, list[tuple[float, float]]]:
@@ -269,12 +269,14 @@ def main(args: Args) -> str:
                 run_grid(scale.config(domain, "csac", etas=[ramp_etas(*args.ramp, domain)]), run_dir(out, domain, RAMP))
             if args.fresh_seeds:
                 train_fresh(scale, out, domain, args.fresh_seeds, args.raw_sum, args.ramp)
-    lines = ["| domain | CSAC variant | final success | per seed | env steps to first success |", "|---|---|---|---|---|"]
+    lines = ["| domain | CSAC variant | final success: mean [95 % CI] | IQM [95 % CI] | per seed | "
+             "env steps to first success |", "|---|---|---|---|---|---|"]
     for domain in DOMAINS:  # every domain trained in `out`, not only this call's: earlier rows are kept
         lines += domain_rows(out, domain)
     text = ("\n".join(lines) + f"\n\nScale `{args.scale}` (see experiments/README.md); the same seeds in every row "
-            "but the fresh-seed ones. Final success: mean of the last 10 epochs' evaluation; first success: mean over "
-            "the seeds that ever succeeded.\n" + "".join(line + "\n" for line in eta_star_lines(out)))
+            "but the fresh-seed ones. Final success: mean of the last 10 epochs' evaluation, aggregated over seeds as "
+            "mean and IQM with 95 % stratified-bootstrap intervals (`ccp_jax.stats`; with 3 seeds the IQM is the "
+            "mean); first success: mean over the seeds that ever succeeded.\n" + "".join(line + "\n" for line in eta_star_lines(out)))
     write_text(out / "eta_auto.md", text)
     draw_comparison(out)
     print(text)
