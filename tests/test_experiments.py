@@ -147,7 +147,7 @@ def test_independent_ratio_report_names_the_best_pair(tmp_path):
     _fake_run(folder, config, {0: [0, 0], 1: [1, 1], 2: [0, 1], 3: [0, 0]})
     cells = independent_ratios.plot.ratio_cells([folder])
     text = independent_ratios.report(cells, None, "smoke", tmp_path, 400)
-    assert "| best pair (η1, η2) | (0.1, 1.0): 1.00 ± 0.00 | (0.1, 1.0): 0.78 |" in text
+    assert "| best pair (η1, η2) | (0.1, 1.0) | 1.00 [1.00, 1.00] | 1.00 [1.00, 1.00] | (0.1, 1.0): 0.78 |" in text
     assert "| 1 | 0.50 ± 0.00 | 0.00 ± 0.00 |" in text
     eta1, eta2, values = independent_ratios.plot.ratio_grid([folder])
     np.testing.assert_allclose(values, [[0.0, 1.0], [0.5, 0.0]])
@@ -169,7 +169,8 @@ def test_independent_ratio_subset_joins_the_shared_diagonal_once(tmp_path):
     assert cells == {(0.1, 1.0): [1.0], (1.0, 0.1): [0.5], (0.1, 0.1): [1.0, 0.5]}
     text = independent_ratios.main(independent_ratios.Args(scale="smoke", out=tmp_path, table1_out=tmp_path / "table1",
                                                            table_only=True))
-    assert "| best shared η (table1.py) | 0.1: 0.25 ± 0.25 | 0.1: 0.54 |" in text
+    # Seeds 0.0 and 0.5: resampled means 0, 0.25 or 0.5.
+    assert "| best shared η (table1.py) | 0.1 | 0.25 [0.00, 0.50] | 0.25 [0.00, 0.50] | 0.1: 0.54 |" in text
     assert "| 1 | 0.50 ± 0.00 |  |" in text and "1/2 seeds per pair" in text
     assert (tmp_path / "heatmap.png").read_bytes()[:4] == b"\x89PNG"
     for bad in (["0.1"], ["0.1,auto"], ["0.1,x"]):
@@ -194,9 +195,11 @@ def test_eta_auto_rows_compare_auto_variants_with_the_best_swept_ratio(maze2_run
     floor = scale.config("maze2", "csac", etas=[("auto",)], normaliser="floor")
     _fake_run(maze2_runs / "maze2" / "csac_auto_floor", floor, {0: [1, 1, 1], 1: [0, 0, 1]})
     rows = eta_auto.domain_rows(maze2_runs, "maze2")
-    assert rows[0] == "| maze2 | best swept η = 0.1 | 0.33 ± 0.33 | 0.67 0.00 | 400 (1/2 seeds) |"
-    assert rows[1] == "| maze2 | auto, batch normaliser | 0.83 ± 0.17 | 1.00 0.67 | 300 (2/2 seeds) |"
-    assert rows[2] == "| maze2 | auto, floor normaliser | 0.67 ± 0.33 | 1.00 0.33 | 400 (2/2 seeds) |"
+    # Intervals by hand: two seeds' resampled means span both; of three seeds (0, 0.5, 1 or 0, 0, 1), all three
+    # equal has a chance of 1/27 > 2.5 %, so the interval reaches both ends.
+    assert rows[0] == "| maze2 | best swept η = 0.1 | 0.33 [0.00, 0.67] | 0.33 [0.00, 0.67] | 0.67 0.00 | 400 (1/2 seeds) |"
+    assert rows[1] == "| maze2 | auto, batch normaliser | 0.83 [0.67, 1.00] | 0.83 [0.67, 1.00] | 1.00 0.67 | 300 (2/2 seeds) |"
+    assert rows[2] == "| maze2 | auto, floor normaliser | 0.67 [0.33, 1.00] | 0.67 [0.33, 1.00] | 1.00 0.33 | 400 (2/2 seeds) |"
     assert len(rows) == 3  # no ema run: no row
     # A call for another domain rewrites eta_auto.md with the maze2 rows kept.
     text = eta_auto.main(eta_auto.Args(scale="smoke", domains=("maze3",), out=maze2_runs, table_only=True))
@@ -238,8 +241,8 @@ def test_ramp_rises_along_the_chain_and_is_trained_on_the_scales_and_the_fresh_s
     _fake_run(ramp_dir, ramp, {0: [1, 1], 1: [0, 1]})
     _fake_run(ramp_fresh_dir, ramp_fresh, {0: [0, 0], 1: [0, 1]})
     rows = eta_auto.domain_rows(maze2_runs, "maze2")
-    assert rows[-2:] == ["| maze2 | ramp η = 0.2 | 0.75 ± 0.25 | 1.00 0.50 | 300 (2/2 seeds) |",
-                         "| maze2 | ramp η = 0.2, fresh seeds 2–3 | 0.25 ± 0.25 | 0.00 0.50 | 400 (1/2 seeds) |"]
+    assert rows[-2:] == ["| maze2 | ramp η = 0.2 | 0.75 [0.50, 1.00] | 0.75 [0.50, 1.00] | 1.00 0.50 | 300 (2/2 seeds) |",
+                         "| maze2 | ramp η = 0.2, fresh seeds 2–3 | 0.25 [0.00, 0.50] | 0.25 [0.00, 0.50] | 0.00 0.50 | 400 (1/2 seeds) |"]
     # The curves pool each variant over the scale's and the fresh seeds.
     groups = eta_auto.comparison_groups(maze2_runs, "maze2")
     assert {g[2]: len(series) for g, series in groups.items()} == {(0.1, 1.0): 2, ("auto", 1.0): 2, (0.2, 1.0): 4}
@@ -273,8 +276,8 @@ def test_fresh_seeds_train_the_best_ratio_and_auto_on_new_seeds_and_add_their_ro
     assert config.grid.etas == ((0.1,), ("auto",)) and config.grid.seeds == (2, 3, 4)
     _fake_run(out, config, {0: [1, 1], 1: [0, 0], 2: [0, 1], 3: [0, 0], 4: [0, 0], 5: [1, 1]})
     rows = eta_auto.domain_rows(maze2_runs, "maze2")
-    assert rows[-2:] == ["| maze2 | best swept η = 0.1, fresh seeds 2–4 | 0.50 ± 0.41 | 1.00 0.00 0.50 | 300 (2/3 seeds) |",
-                         "| maze2 | auto, batch normaliser, fresh seeds 2–4 | 0.33 ± 0.47 | 0.00 0.00 1.00 | 200 (1/3 seeds) |"]
+    assert rows[-2:] == ["| maze2 | best swept η = 0.1, fresh seeds 2–4 | 0.50 [0.00, 1.00] | 0.50 [0.00, 1.00] | 1.00 0.00 0.50 | 300 (2/3 seeds) |",
+                         "| maze2 | auto, batch normaliser, fresh seeds 2–4 | 0.33 [0.00, 1.00] | 0.33 [0.00, 1.00] | 0.00 0.00 1.00 | 200 (1/3 seeds) |"]
     with pytest.raises(SystemExit, match="^error: fresh_seeds: must be >= 0"):
         eta_auto.main(eta_auto.Args(scale="smoke", domains=("maze2",), out=maze2_runs, fresh_seeds=-1))
 
@@ -295,8 +298,8 @@ def test_raw_sum_trains_none_at_eta_half_on_the_scales_and_the_fresh_seeds_and_a
     _fake_run(raw_dir, raw, {0: [1, 1], 1: [0, 1]})
     _fake_run(raw_fresh_dir, raw_fresh, {0: [0, 0], 1: [0, 1], 2: [1, 1]})
     rows = eta_auto.domain_rows(maze2_runs, "maze2")
-    assert rows[-2:] == ["| maze2 | raw sum (no normaliser, η = 0.5) | 0.75 ± 0.25 | 1.00 0.50 | 300 (2/2 seeds) |",
-                         "| maze2 | raw sum, fresh seeds 2–4 | 0.50 ± 0.41 | 0.00 0.50 1.00 | 300 (2/3 seeds) |"]
+    assert rows[-2:] == ["| maze2 | raw sum (no normaliser, η = 0.5) | 0.75 [0.50, 1.00] | 0.75 [0.50, 1.00] | 1.00 0.50 | 300 (2/2 seeds) |",
+                         "| maze2 | raw sum, fresh seeds 2–4 | 0.50 [0.00, 1.00] | 0.50 [0.00, 1.00] | 0.00 0.50 1.00 | 300 (2/3 seeds) |"]
 
 
 def test_fresh_seeds_without_a_sweep_to_pick_from_fail_before_any_grid_trains(maze2_runs, monkeypatch):
