@@ -88,8 +88,8 @@ class Task:
     """Time limit of an episode, in env steps (truncation, not a termination)."""
     peg_model: PegModel = "arm"
     """Peg: the robot that does the task, arm (the Panda arm with the Franka Hand, IK-controlled) or hand (the
-    Franka Hand alone on a slide along x: same scene, contacts, actions, observations and rewards, ≈ 2x faster
-    on a CPU; docs/peg.md#the-hand-variant)."""
+    Franka Hand alone on a slide along x: same scene, contacts, actions, observations and rewards; 1.6-2.5x
+    faster on a CPU; docs/peg.md#the-hand-variant)."""
 
     def check(self) -> None:
         from ccp_jax.envs import ENV_NAMES  # local: config must not import jax eagerly
