@@ -9,7 +9,7 @@ take turns within each trial: the CPU may be shared). A control step is
 `n_substeps` = 10 physics steps plus one controller and one observation; the script prints each piece
 per control step (physics pieces x 10), its share, and the measured whole control step.
 
-    python experiments/bench/peg_breakdown.py [--models arm hand] [--reps 50] [--trials 5]
+    python experiments/bench/peg_breakdown.py [--models arm hand] [--reps 20] [--trials 7]
 
 Compiling takes ≈ 2-4 min per model on a 2-core CPU.
 """
@@ -129,8 +129,8 @@ def report(model: str, t: dict[str, float], n_substeps: int) -> None:
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--models", nargs="+", default=["arm", "hand"], choices=["arm", "hand"])
-    p.add_argument("--reps", type=int, default=50, help="applications per compiled call")
-    p.add_argument("--trials", type=int, default=5)
+    p.add_argument("--reps", type=int, default=20, help="applications per compiled call")
+    p.add_argument("--trials", type=int, default=7)
     p.add_argument("--steps", type=int, default=90, help="control steps of the scripted grasp before timing")
     args = p.parse_args(argv)
     print(f"jax {jax.__version__}, {jax.default_backend()}, {os.cpu_count()} CPUs, "
