@@ -35,6 +35,8 @@ NetworkInit = Literal["flax", "rlkit"]
 NETWORK_INITS = ("flax", "rlkit")
 CoopScale = Literal["unit", "own"]
 COOP_SCALES = ("unit", "own")
+PegModel = Literal["arm", "hand"]
+PEG_MODELS = ("arm", "hand")  # envs_mjx.peg_in_hole.MODELS
 # The maze kinematics of the runs whose config.json predates maze_reverse / maze_slide: a robot that reversed and
 # stopped at walls (`migrate`).
 LEGACY_MAZE = {"maze_reverse": True, "maze_slide": False}
@@ -96,12 +98,17 @@ class Task:
     """Number of maze rooms (stages). Peg and pusher have 2 stages; a user env sets its own."""
     max_episode_steps: int = 1000
     """Time limit of an episode, in env steps (truncation, not a termination)."""
+    peg_model: PegModel = "arm"
+    """Peg: the robot that does the task, arm (the Panda arm with the Franka Hand, IK-controlled) or hand (the
+    Franka Hand alone on a slide along x: same scene, contacts, actions, observations and rewards; 1.6-2.5x
+    faster on a CPU; docs/peg.md#the-hand-variant)."""
 
     def check(self) -> None:
         from ccp_jax.envs import ENV_NAMES  # local: config must not import jax eagerly
 
         if self.env not in ENV_NAMES and ":" not in self.env:
             raise ConfigError("env", f"unknown env {self.env!r}; choose one of {ENV_NAMES} or 'module.path:factory'")
+        _choice(self, "peg_model", PEG_MODELS, "peg model")
         if not isinstance(self.rooms, int) or self.rooms < 2:
             raise ConfigError("rooms", f"must be an integer >= 2, got {self.rooms!r}")
         _positive_ints(self, ("max_episode_steps",))
@@ -563,7 +570,7 @@ class Config:
         self.sac.check()
         self.ccp.check()
         self.ablations.check()
-        self._check_maze()
+        self._check_env_options()
         self._check_cycles()
         self._check_ratios()
         self._check_auto()
@@ -572,10 +579,13 @@ class Config:
             self.tp.check()
             self._check_tp()
 
-    def _check_maze(self) -> None:
+    def _check_env_options(self) -> None:
+        """Settings of one built-in env are refused at their non-default values for another env."""
         for name in ("maze_reverse", "maze_slide"):
             if self.task.env != "maze" and getattr(self.ablations, name) != getattr(Ablations, name):
                 raise ConfigError(name, f"is an option of the maze; env {self.task.env!r} has no such setting")
+        if self.task.env != "peg" and self.task.peg_model != Task.peg_model:
+            raise ConfigError("peg_model", f"is an option of peg; env {self.task.env!r} has no such setting")
 
     def _check_cycles(self) -> None:
         budget, cycles = self.budget, self.ablations.train_cycles_per_epoch

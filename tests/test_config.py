@@ -35,6 +35,8 @@ from ccp_jax.train import Args, config_from_args, parse_args
     (dict(env="peg", maze_slide=False), "maze_slide"),  # a maze option on another env
     (dict(env="peg", maze_reverse=True), "maze_reverse"),
     (dict(maze_reverse="no"), "maze_reverse"),
+    (dict(env="peg", peg_model="gripper"), "peg_model"),
+    (dict(peg_model="hand"), "peg_model"),  # a peg option on another env (tiny's maze)
 ])
 def test_bad_config_names_the_field(overrides, field):
     with pytest.raises(ConfigError) as err:
@@ -139,6 +141,20 @@ def test_a_config_json_from_before_the_kinematics_fields_reads_as_the_robot_it_t
     assert (written.ablations.maze_reverse, written.ablations.maze_slide) == (False, True)
     old_peg = {k: v for k, v in make_config("tiny", env="peg").flat().items() if k not in ("maze_reverse", "maze_slide")}
     assert Config.from_dict(old_peg) == make_config("tiny", env="peg")  # other envs have no kinematics to recall
+
+
+def test_a_config_json_from_before_peg_model_reads_as_the_arm():
+    """peg_model came with the hand variant; every run before it stepped the arm, in either config.json form."""
+    from ccp_jax.config import Config
+
+    arm, hand = make_config("tiny", env="peg"), make_config("tiny", env="peg", peg_model="hand")
+    assert (arm.task.peg_model, hand.task.peg_model) == ("arm", "hand")
+    nested = arm.to_dict()
+    del nested["task"]["peg_model"]
+    flat = {k: v for k, v in arm.flat().items() if k != "peg_model"}  # version 1: no "version" key
+    for old in (nested, flat):
+        assert Config.from_dict(old).task.peg_model == "arm"
+    assert Config.from_dict(hand.to_dict()) == hand  # a file that records it keeps it
 
 
 def test_a_folder_without_a_readable_run_is_named_by_the_argument_that_gave_it(tmp_path, capsys):
