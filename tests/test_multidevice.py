@@ -32,12 +32,17 @@ SCRIPT = textwrap.dedent("""
 """)
 
 
-def test_four_devices_equal_one():
+def _on_four_devices(script: str) -> None:
+    """Runs `script` in a process whose CPU is split into 4 devices; it prints EQUAL when its comparison held."""
     env = dict(os.environ, XLA_FLAGS=os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4",
                JAX_PLATFORMS="cpu")
-    result = subprocess.run([sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=900)
+    result = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "EQUAL" in result.stdout
+
+
+def test_four_devices_equal_one():
+    _on_four_devices(SCRIPT)
 
 
 PBT_SCRIPT = textwrap.dedent("""
@@ -76,8 +81,4 @@ PBT_SCRIPT = textwrap.dedent("""
 
 
 def test_pbt_on_four_devices_copies_as_on_one():
-    env = dict(os.environ, XLA_FLAGS=os.environ.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=4",
-               JAX_PLATFORMS="cpu")
-    result = subprocess.run([sys.executable, "-c", PBT_SCRIPT], env=env, capture_output=True, text=True, timeout=900)
-    assert result.returncode == 0, result.stderr[-3000:]
-    assert "EQUAL" in result.stdout
+    _on_four_devices(PBT_SCRIPT)
