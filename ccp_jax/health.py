@@ -20,14 +20,20 @@ import jax.numpy as jnp
 DIVERGED = 10.0
 
 
+def limits(bound: float) -> tuple[float, float]:
+    """(the critic's limit, the critic loss's limit) for a value bound: DIVERGED × bound and its (2 ×)²."""
+    limit = DIVERGED * bound
+    return limit, (2 * limit) ** 2
+
+
 def diverged(train: Any, agents: Any, bound: float) -> jax.Array:
     """bool[]: whether one member's epoch diverged. `train`: its `learner.UpdateMetrics` (leaves float32[N]);
     `agents`: its `AgentState` after the epoch's updates."""
-    limit = DIVERGED * bound
+    limit, loss_limit = limits(bound)
     metrics = (train.q_loss, train.pi_loss, train.alpha, train.log_prob, train.q_max)
     finite = jnp.all(jnp.stack([jnp.isfinite(x).all() for x in metrics]))
     params = jnp.all(jnp.stack([jnp.isfinite(x).all() for x in jax.tree.leaves(agents)
                                 if jnp.issubdtype(x.dtype, jnp.floating)]))
     # NaN fails every comparison: `<=` holds only for finite values within the limits.
-    within = (train.q_max <= limit).all() & (train.q_loss <= (2 * limit) ** 2).all()
+    within = (train.q_max <= limit).all() & (train.q_loss <= loss_limit).all()
     return ~(finite & params & within)

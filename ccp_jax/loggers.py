@@ -30,6 +30,9 @@ class Sink(Protocol):
     def video(self, member: int, path: Path, frames: np.ndarray, fps: float, env_steps: int) -> None:
         """Member `member`'s video at `env_steps`: the file written (`path`) and its frames uint8[T, H, W, 3]."""
 
+    def resume(self, env_steps: int) -> None:
+        """A resumed run trains again after `env_steps`: what was logged later is superseded."""
+
     def close(self) -> None: ...
 
 
@@ -52,19 +55,33 @@ def scalars(row: dict) -> dict[str, float]:
 class TensorBoardLogger:
     """One tensorboardX writer per grid member, writing to OUT/tb/member_K (step = env_steps).
 
-    `purge_step`: on resume, the first env step trained again; TensorBoard hides the points the run logged from
-    there before it stopped, so the epochs trained again after a resume are not drawn twice.
+    The writers open at the first write, so a resumed run can still say where it restarts (`resume`), and a
+    run refused before its first epoch leaves no event file.
     """
 
-    def __init__(self, out: Path, config: Config, purge_step: Optional[int] = None):
-        from tensorboardX import SummaryWriter  # imported here: only runs that log need it
+    def __init__(self, out: Path, config: Config):
+        import tensorboardX  # imported here: only runs that log need it (and a missing one fails before training)
 
-        eta, seed = config.grid_arrays()
-        self.writers = [SummaryWriter(logdir=str(Path(out) / "tb" / f"member_{k}"), purge_step=purge_step)
-                        for k in range(config.grid_size)]
-        for k, writer in enumerate(self.writers):
-            writer.add_text("member",
-                            f"algo {config.algo}, env {config.task.env}, eta {eta[k].tolist()}, seed {seed[k]}")
+        self._summary_writer = tensorboardX.SummaryWriter
+        self.out, self.config = Path(out), config
+        self.purge_step: Optional[int] = None
+        self._writers: Optional[list] = None
+
+    def resume(self, env_steps: int) -> None:
+        """The resumed run trains again after `env_steps` (its checkpoint's): TensorBoard hides what the stopped
+        run logged from there on (tensorboardX's purge_step), so the epochs trained again are not drawn twice."""
+        self.purge_step = env_steps + 1
+
+    @property
+    def writers(self) -> list:
+        if self._writers is None:
+            eta, seed = self.config.grid_arrays()
+            self._writers = [self._summary_writer(logdir=str(self.out / "tb" / f"member_{k}"),
+                                                  purge_step=self.purge_step) for k in range(self.config.grid_size)]
+            for k, writer in enumerate(self._writers):
+                writer.add_text("member", f"algo {self.config.algo}, env {self.config.task.env}, "
+                                          f"eta {eta[k].tolist()}, seed {seed[k]}")
+        return self._writers
 
     def write(self, rows: Sequence[dict]) -> None:
         for row in rows:
@@ -87,7 +104,7 @@ class TensorBoardLogger:
         writer.flush()
 
     def close(self) -> None:
-        for writer in self.writers:
+        for writer in self._writers or ():
             writer.close()
 
 
@@ -115,6 +132,9 @@ class WandbLogger:
         """The video file as `member_K/video`, at the step of the epoch's metrics."""
         self.run.log({f"member_{member}/video": self.wandb.Video(str(path))}, step=env_steps)
 
+    def resume(self, env_steps: int) -> None:
+        pass  # a resumed run is a new W&B run: nothing of it to supersede
+
     def close(self) -> None:
         self.run.finish()
 
@@ -133,21 +153,23 @@ class Loggers:
         for sink in self.sinks:
             sink.video(member, path, frames, fps, env_steps)
 
+    def resume(self, env_steps: int) -> None:
+        for sink in self.sinks:
+            sink.resume(env_steps)
+
     def close(self) -> None:
         for sink in self.sinks:
             sink.close()
 
 
-def make_loggers(out: Path, config: Config, tensorboard: bool = True, wandb_project: Optional[str] = None,
-                 purge_step: Optional[int] = None) -> Loggers:
+def make_loggers(out: Path, config: Config, tensorboard: bool = True, wandb_project: Optional[str] = None) -> Loggers:
     """The sinks asked for (possibly none). W&B is used only when `wandb_project` is given;
-    asking for it without the `wandb` package raises ImportError before anything is trained.
-    `purge_step`: see `TensorBoardLogger`."""
+    asking for it without the `wandb` package raises ImportError before anything is trained."""
     if wandb_project is not None and importlib.util.find_spec("wandb") is None:
         raise ImportError("wandb_project was given but wandb is not installed: pip install wandb")
     sinks: list[Sink] = []
     if tensorboard:
-        sinks.append(TensorBoardLogger(out, config, purge_step))
+        sinks.append(TensorBoardLogger(out, config))
     if wandb_project is not None:
         sinks.append(WandbLogger(out, config, wandb_project))
     return Loggers(sinks)

@@ -14,6 +14,7 @@ from typing import Any, Iterable, Optional
 
 import numpy as np
 
+from ccp_jax import health
 from ccp_jax.config import Config, ConfigError
 from ccp_jax.health import DIVERGED
 
@@ -333,13 +334,13 @@ def critic_peaks(rows: list[dict], limit: float) -> dict:
 def divergence(row: dict, bound: float) -> Optional[str]:
     """Why one epoch's row of a member shows a diverged learner (`health`'s rule, on the written numbers), or None
     for a healthy one. Rows without learner values (TP's) are healthy."""
-    limit = DIVERGED * bound
+    limit, loss_limit = health.limits(bound)
     for n, q in enumerate(row.get("q_max") or ()):
         if _above(q, limit):
             return _beyond(f"agent {n}'s critic", q, f"{limit:,.0f} ({DIVERGED:g} x the {bound:g} its rewards allow)")
     for n, loss in enumerate(row.get("q_loss") or ()):
-        if _above(loss, (2 * limit) ** 2):
-            return _beyond(f"agent {n}'s critic loss", loss, f"{(2 * limit) ** 2:,.0f}")
+        if _above(loss, loss_limit):
+            return _beyond(f"agent {n}'s critic loss", loss, f"{loss_limit:,.0f}")
     for name in ("pi_loss", "alpha", "log_prob"):
         for n, x in enumerate(row.get(name) or ()):
             if x is None or not math.isfinite(x):

@@ -373,18 +373,19 @@ def _restore(mngr: checkpoint.ocp.CheckpointManager, trainer: Any, seed: np.ndar
              epoch: Optional[int], lead: bool) -> tuple[int, Any]:
     """Checkpoint `epoch` (None: the latest) restored for `trainer`; a damaged one gives way to the next older,
     which the rows cover too, with a warning (the epochs after it are trained again, deterministically)."""
+    def restore(candidate: Optional[int]) -> tuple[int, Any]:
+        return checkpoint.restore(mngr, trainer.abstract_state(seed), grid_size=grid_size, epoch=candidate,
+                                  defaults=lambda: trainer.init(seed))  # for fields added since
+
     candidates = [epoch, *sorted((s for s in mngr.all_steps() if epoch is not None and s < epoch), reverse=True)]
-    for n, candidate in enumerate(candidates):
+    for candidate, older in zip(candidates, candidates[1:]):
         try:
-            return checkpoint.restore(mngr, trainer.abstract_state(seed), grid_size=grid_size, epoch=candidate,
-                                      defaults=lambda: trainer.init(seed))  # for fields added since
+            return restore(candidate)
         except checkpoint.UnreadableCheckpoint as err:
-            if n + 1 == len(candidates):
-                raise
             if lead:
-                print(f"warning: {str(err).split('; earlier')[0]}; resuming from checkpoint {candidates[n + 1]} "
-                      "instead (the damaged one is replaced)")
-    raise AssertionError("unreachable")
+                print(f"warning: {str(err).split('; earlier')[0]}; resuming from checkpoint {older} instead (the "
+                      "damaged one is replaced)")
+    return restore(candidates[-1])
 
 
 def run(config: Config, out: Path, progress: bool = True, resume: bool = False,
@@ -410,9 +411,7 @@ def run(config: Config, out: Path, progress: bool = True, resume: bool = False,
               if video_every else None)
     mngr = checkpoint.manager(out)
     resume_epoch = resume_point(mngr, rows, config.grid_size) if resume else None
-    # TensorBoard hides the points a crashed run logged past the checkpoint it resumes from (trained again).
-    restart = next((r["env_steps"] for r in rows if r["epoch"] == resume_epoch), None)
-    sinks = loggers.make_loggers(out, config, tensorboard, wandb_project, purge_step=restart and restart + 1)
+    sinks = loggers.make_loggers(out, config, tensorboard, wandb_project)
     options = {"checkpoint_every": checkpoint_every, "video_every": video_every, "video_members": list(video_members)}
     try:
         return _train(config, env, out, progress, mngr, (rows, resume_epoch) if resume else None, options, sinks,
@@ -444,6 +443,7 @@ def _train(config: Config, env, out: Path, progress: bool, mngr: checkpoint.ocp.
             outputs.write_rows(metrics_path, rows)
             (out / outputs.COMPACTED).unlink(missing_ok=True)  # a compacted run's rows are raw again, to append to
             video.forget_after(out, first_epoch)
+            sinks.resume(rows[-1]["env_steps"])  # the restored checkpoint's: a damaged newer one may have given way
     else:
         first_epoch, state = 0, trainer.init(seed)
     start -= sum(r["epoch_wall_s"] for r in rows if r["member"] == 0)  # a resumed run's earlier epochs count too

@@ -140,8 +140,10 @@ def test_a_damaged_newest_checkpoint_gives_way_to_the_older_one(finished, tmp_pa
     data = bytearray(biggest.read_bytes())
     data[len(data) // 3: 2 * len(data) // 3] = bytes(len(data[len(data) // 3: 2 * len(data) // 3]))
     biggest.write_bytes(bytes(data))
-    main(["--resume", str(run), "--no-progress", "--no-tensorboard"])
+    main(["--resume", str(run), "--no-progress"])
     assert "/checkpoints/5 cannot be restored" in capsys.readouterr().out
+    again = max((run / "tb" / "member_0").glob("events.*"))  # TensorBoard restarts after checkpoint 4, not 5
+    assert [e.step for e in _read_events(again) if e.HasField("session_log") and e.session_log.status == 1] == [801]
     strip = lambda path: [line.split(', "epoch_wall_s"')[0] for line in path.read_text().splitlines()]  # noqa: E731
     assert strip(run / "metrics.jsonl") == strip(finished / "metrics.jsonl")
     assert checkpoint.manager(run).all_steps() == [4, 5]
