@@ -145,8 +145,20 @@ display(Image(str(out / "success.png")))'''),
 ]
 
 
+def colab_badge(name: str) -> str:
+    """The "Open in Colab" badge of notebook `name`, as Markdown (Colab opens it from the repository's main branch)."""
+    url = REPO.replace("https://github.com/", "https://colab.research.google.com/github/") + f"/blob/main/notebooks/{name}"
+    return f"[![Open in Colab](https://colab.research.google.com/assets/colab-badge.svg)]({url})"
+
+
+def with_badge(name: str, cells: list) -> list:
+    """`cells` with the Colab badge opening the first (Markdown) cell."""
+    return [new_markdown_cell(colab_badge(name) + "\n\n" + cells[0].source), *cells[1:]]
+
+
 def write(name: str, cells: list) -> None:
-    nb = new_notebook(cells=cells, metadata={"kernelspec": {"name": "python3", "display_name": "Python 3"},
+    """Writes notebook `name` beside this script, with its Colab badge."""
+    nb = new_notebook(cells=with_badge(name, cells), metadata={"kernelspec": {"name": "python3", "display_name": "Python 3"},
                                              "colab": {"provenance": []}})
     nbformat.write(nb, Path(__file__).with_name(name))
 

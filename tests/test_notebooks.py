@@ -33,4 +33,5 @@ def test_notebooks_are_generated_from_their_script():
     for name, cells in (("quickstart.ipynb", module.QUICKSTART), ("ratio_sweep.ipynb", module.SWEEP),
                         ("peg_in_hole.ipynb", module.PEG), ("own_task.ipynb", module.OWN_TASK)):
         committed = nbformat.read(NOTEBOOKS / name, as_version=4)
-        assert [c.source for c in committed.cells] == [c.source for c in cells], name
+        assert [c.source for c in committed.cells] == [c.source for c in module.with_badge(name, cells)], name
+        assert "colab.research.google.com/github/" in committed.cells[0].source and name in committed.cells[0].source
