@@ -8,6 +8,10 @@ starting ratios × `--seeds-per-block` seeds, at the scale's budget): a fixed
 sweep (<domain>/sweep_b<k>/) and a population (<domain>/pbt_b<k>/, the
 same grid with `--pbt-every`). Both cost the same env steps and updates.
 The seeds start at 40 (`FIRST_SEED`): never used for any choice before.
+With `--auto-rule RULE` (after every block's sweep and population), a third
+grid of P members of `--eta auto --eta-auto-rule RULE` (<domain>/<rule>_b<k>/,
+the best one-run rule of docs/results.md, `trusted`), on P seeds of its own
+from `AUTO_FIRST_SEED`: the same cost again.
 
 What the report (`pbt_compare.md` in the results folder) says, over the blocks:
 
@@ -36,10 +40,12 @@ from typing import Optional
 
 import numpy as np
 
+from ccp_jax.eta import AUTO, ETA_AUTO_RULES
 from common import (DOMAINS, SCALES, ScaleName, cli, eta_label, improvement, mean_and_iqm, read_json, results_folder,
                     run_grid, write_text)
 
 FIRST_SEED = 40  # seeds 40+: never used for a choice (Table I's sweeps use 0-11, the paper budget 30-34)
+AUTO_FIRST_SEED = 100  # the auto rule's grids: P seeds per block from here
 
 
 @dataclasses.dataclass
@@ -56,6 +62,9 @@ class Args:
     """The population's ranking interval in epochs (`--pbt-every`)."""
     out: Optional[Path] = None
     """Results folder (default experiments/results/pbt_compare_<scale>)."""
+    auto_rule: Optional[str] = None
+    """Also train P members of `--eta auto` with this rule per block (e.g. trusted), after the sweeps and
+    populations."""
     report_only: bool = False
     """Write the report from the finished blocks; train nothing."""
 
@@ -64,17 +73,22 @@ def block_seed(args: Args, block: int) -> int:
     return FIRST_SEED + block * args.seeds_per_block
 
 
-def grid_config(args: Args, domain: str, block: int, pbt: bool):
+def grid_config(args: Args, domain: str, block: int, arm: str):
+    """The grid of one arm ("sweep", "pbt" or the auto rule) in one block."""
     scale = SCALES[args.scale]
+    if arm == args.auto_rule:
+        size = len(args.etas) * args.seeds_per_block
+        return scale.config(domain, "csac", ((AUTO,),), seeds=size, first_seed=AUTO_FIRST_SEED + block * size,
+                            eta_auto_rule=arm)
     cooperative = DOMAINS[domain][1] - 1 if DOMAINS[domain][0] == "maze" else 1
     etas = tuple((e,) * cooperative for e in args.etas)
-    changes = dict(pbt_every=args.pbt_every) if pbt else {}
+    changes = dict(pbt_every=args.pbt_every) if arm == "pbt" else {}
     return scale.config(domain, "csac", etas, seeds=args.seeds_per_block, first_seed=block_seed(args, block),
                         **changes)
 
 
-def folder(out: Path, domain: str, block: int, pbt: bool) -> Path:
-    return out / domain / f"{'pbt' if pbt else 'sweep'}_b{block}"
+def folder(out: Path, domain: str, block: int, arm: str) -> Path:
+    return out / domain / f"{arm}_b{block}"
 
 
 # ------------------------------------------------------------------ reading a finished grid
@@ -132,7 +146,7 @@ def sweep_pick_on_fresh_seeds(sweeps: list[dict]) -> list[tuple[float, float]]:
 
 # ------------------------------------------------------------------ the report
 def report(args: Args, out: Path, domain: str) -> Optional[str]:
-    pairs = [(folder(out, domain, b, False), folder(out, domain, b, True)) for b in range(args.blocks)]
+    pairs = [(folder(out, domain, b, "sweep"), folder(out, domain, b, "pbt")) for b in range(args.blocks)]
     pairs = [(s, p) for s, p in pairs if (s / "summary.json").exists() and (p / "summary.json").exists()]
     if not pairs:
         return None
@@ -149,6 +163,13 @@ def report(args: Args, out: Path, domain: str) -> Optional[str]:
     for name, grids in (("population", pops), ("sweep", sweeps)):
         values = [g["median"] for g in grids]
         lines.append(f"| {name} | median | {mean_and_iqm(values)} | {' '.join(f'{v:.2f}' for v in values)} |")
+    if args.auto_rule:
+        autos = [grid_scores(f, args.pbt_every) for b in range(args.blocks)
+                 if ((f := folder(out, domain, b, args.auto_rule)) / "summary.json").exists()]
+        for which, values in (("best", [g["best"]["success"] for g in autos]), ("median", [g["median"] for g in autos])):
+            if values:
+                lines.append(f"| auto, {args.auto_rule} ({len(values)} blocks) | {which} | {mean_and_iqm(values)} | "
+                             f"{' '.join(f'{v:.2f}' for v in values)} |")
     if fresh:
         values = [v for _, v in fresh]
         lines.append(f"| sweep's pick, on the other blocks' seeds | η = "
@@ -170,12 +191,14 @@ def report(args: Args, out: Path, domain: str) -> Optional[str]:
 
 def main(args: Args) -> None:
     out = results_folder(args.out, "pbt_compare", args.scale, args.domains)
+    if args.auto_rule is not None and args.auto_rule not in ETA_AUTO_RULES:
+        raise SystemExit(f"error: auto_rule: unknown {args.auto_rule!r}; choose from {ETA_AUTO_RULES}")
     if not args.report_only:
         for domain in args.domains:
-            for block in range(args.blocks):
-                for pbt in (False, True):
-                    run_grid(grid_config(args, domain, block, pbt), folder(out, domain, block, pbt),
-                             checkpoint_every=5)
+            arms = [(block, arm) for block in range(args.blocks) for arm in ("sweep", "pbt")]
+            arms += [(block, args.auto_rule) for block in range(args.blocks) if args.auto_rule]
+            for block, arm in arms:
+                run_grid(grid_config(args, domain, block, arm), folder(out, domain, block, arm), checkpoint_every=5)
     sections = [s for d in args.domains if (s := report(args, out, d))]
     if sections:
         write_text(out / "pbt_compare.md", "\n\n".join(sections) + "\n")

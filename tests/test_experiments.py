@@ -14,6 +14,7 @@ import compare  # noqa: E402
 import curves  # noqa: E402
 import independent_ratios  # noqa: E402
 import paper_budget  # noqa: E402
+import pbt_compare  # noqa: E402
 import table1  # noqa: E402
 from ccp_jax.config import ConfigError  # noqa: E402
 
@@ -525,3 +526,39 @@ def test_auto_variants_figure_pools_each_domains_seeds_per_line_from_the_committ
         assert [legend for _, legend, _ in groups] == [legend for legend, _, _ in variants], domain
         seeds = 3 if domain == "peg" else 6
         assert all(len(series) == seeds for series in groups.values()), domain
+
+
+def _fake_pbt_compare_block(out: Path, args, block: int, arm: str, success: dict[int, float],
+                            fitness: dict[int, float]) -> None:
+    """One finished grid of pbt_compare with given final eval success and training fitness per member (2 stages:
+    fitness = (reached stage 1 + succeeded) / 2; every training episode that reaches stage 1 here succeeds)."""
+    from ccp_jax import outputs
+
+    config = pbt_compare.grid_config(args, "maze2", block, arm)
+    folder = pbt_compare.folder(out, "maze2", block, arm)
+    folder.mkdir(parents=True)
+    outputs.write_json(folder / "config.json", config.to_dict())
+    rows = [dict(member=m, seed=seed, eta=list(eta), algo="csac", epoch=epoch, env_steps=epoch * 200,
+                 success_rate=success[m], eval_return=success[m], stage_reached_mean=success[m],
+                 train_episodes=4.0, train_success=fitness[m], train_stage_fraction=[1.0, fitness[m]])
+            for m, (eta, seed) in enumerate(config.members) for epoch in (1, 2)]
+    outputs.write_rows(folder / "metrics.jsonl", rows)
+    outputs.write_json(folder / "summary.json", outputs.summarise(config, rows, wall_s=2.0))
+
+
+def test_pbt_compare_keeps_the_fittest_member_and_scores_the_sweeps_pick_on_the_other_blocks(tmp_path):
+    assert pbt_compare.training_fitness([dict(train_episodes=4.0, train_success=0.25,
+                                              train_stage_fraction=[1.0, 0.5])], window=1) == pytest.approx(0.375)
+    args = pbt_compare.Args(scale="smoke", blocks=2, etas=(0.1, 0.5), seeds_per_block=1, out=tmp_path)
+    # members: (0.1, seed), (0.5, seed). Block 0: 0.5 evaluates best but 0.1 trains fitter, so 0.1 is kept.
+    _fake_pbt_compare_block(tmp_path, args, 0, "sweep", {0: 0.2, 1: 0.9}, {0: 0.8, 1: 0.1})
+    _fake_pbt_compare_block(tmp_path, args, 0, "pbt", {0: 0.6, 1: 0.0}, {0: 0.9, 1: 0.0})
+    _fake_pbt_compare_block(tmp_path, args, 1, "sweep", {0: 0.4, 1: 0.3}, {0: 0.1, 1: 0.7})
+    _fake_pbt_compare_block(tmp_path, args, 1, "pbt", {0: 1.0, 1: 0.5}, {0: 0.6, 1: 0.5})
+    sweeps = [pbt_compare.grid_scores(pbt_compare.folder(tmp_path, "maze2", b, "sweep"), 2) for b in (0, 1)]
+    assert [g["best"]["success"] for g in sweeps] == [0.2, 0.3]  # by training fitness, not by evaluation
+    # block 0 picks 0.5 (0.9), scored on block 1's 0.5 member (0.3); block 1 picks 0.1 (0.4), scored on block 0's (0.2)
+    assert pbt_compare.sweep_pick_on_fresh_seeds(sweeps) == [(0.5, pytest.approx(0.3)), (0.1, pytest.approx(0.2))]
+    text = pbt_compare.report(args, tmp_path, "maze2")
+    assert "| population | best | 0.80 [" in text and "| 0.60 1.00 |" in text
+    assert "| sweep's pick, on the other blocks' seeds | η = 0.5, 0.1 | 0.25 [" in text
