@@ -105,8 +105,8 @@ class Task:
     Franka Hand alone on a slide along x: same scene, contacts, actions, observations and rewards; 1.6-2.5x
     faster on a CPU; docs/peg.md#the-hand-variant)."""
     peg_physics: PegPhysics = "mjx"
-    """Peg: what steps the physics, mjx (MuJoCo MJX, on any JAX device) or c (C MuJoCo on the host behind a JAX
-    callback: the same task, a CPU only, 10x and more faster there; docs/peg.md#c-physics)."""
+    """Peg: what steps the physics, mjx (MuJoCo MJX, inside the compiled program on any JAX device) or c (C MuJoCo
+    on the host CPU behind a JAX callback: the same task, 5-13x faster on a CPU; docs/peg.md#c-physics)."""
 
     def check(self) -> None:
         from ccp_jax.envs import ENV_NAMES  # local: config must not import jax eagerly

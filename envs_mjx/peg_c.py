@@ -89,7 +89,7 @@ class CPhysics:
         return jax.pure_callback(self._host_reset, out, qpos, vmap_method="broadcast_all")
 
     def unpack(self, flat: jax.Array) -> dict[str, jax.Array]:
-        """The readout float32[R] as named arrays (`readout_layout`); "touch" becomes bool[2], "jac" None if left out."""
+        """The readout float32[R] as named arrays (`readout_layout`): "touch" as bool[2], "jac" None if left out."""
         out, i = {}, 0
         for name, shape in self.layout:
             n = int(np.prod(shape))

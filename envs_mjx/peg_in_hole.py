@@ -7,6 +7,9 @@ a slide along x with a velocity servo (``assets/hand_peg.xml``): y, z and orient
 are held by construction instead of by the arm's controller, and the scene, peg,
 fingers, contacts, actions, observation layout, rewards, stages and resets are the
 arm's. On a CPU the hand steps 1.6x (one env) to 2.5x (16) faster (docs/peg.md#the-hand-variant).
+Two physics step either model (``physics``): "mjx", MuJoCo MJX inside the compiled program (any JAX device),
+and "c", C MuJoCo on the host behind ``jax.pure_callback`` (`envs_mjx.peg_c`; docs/peg.md#c-physics). The
+env's controller, observation, rewards and grasp check read one `Readout` that either physics fills.
 
 Scene (``assets/panda_peg.xml``; all numbers in metres, world frame, x from the robot
 towards the block): a block whose front face is at x = 0.60 has a 20 mm square

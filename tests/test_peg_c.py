@@ -3,7 +3,7 @@ batching, sharding, the contract, and agreement with MJX.
 
 tests/test_peg.py runs every scripted check on both physics; here, per model, one compiled program rolls
 out 8 environments (jit + vmap + lax.scan, ~5 s to compile and run on a 2-core CPU) and the tests read it.
-The comparison with MJX compiles an MJX rollout per model (~1 min each).
+The comparison with MJX compiles an MJX rollout per model (~50 s hand, ~80 s arm).
 """
 from __future__ import annotations
 
@@ -154,24 +154,32 @@ def test_render_frames_reads_the_exact_state(env, run):
 
 
 # C against MJX, closed loop: the same resets and scripted policies, each physics under its own env.
-AGREE_STEPS = 40  # the approach and the start of the grasp (grasps close at ~step 50)
-AGREE_TOL = {"arm": 2e-3, "hand": 2e-3}  # metres, grip point and peg centre; the docstring says why
+AGREE_STEPS = 40  # the approach, up to where the first fingers close on the peg (grasps are detected at 38-56)
+AGREE_TOL = 1.5e-3  # metres: measured at most 1.0 mm (grip point) and 0.4 mm (peg centre) on both models
 
 
 def test_c_and_mjx_agree_over_the_first_steps(env, run):
-    """From the same reset (bitwise the same qpos: the reset draws in JAX), the same scripted policies give
-    the same grip point and peg centre within 2 mm over the approach (40 steps): the two simulators differ by
-    float32 against float64 and by their collision and solver code, and closed loop the controller feeds the
-    differences back; contacts (the fingers closing on the peg) then amplify them, so later steps are compared
-    by outcome only (tests/test_peg.py: the same scripted outcomes on both)."""
+    """From the same reset (the same qpos to float32 rounding: the reset draws in JAX), the same policies give the same grip
+    point and peg centre within 1.5 mm over the first 40 steps; each grasp is detected within 3 steps of the
+    other physics' and every env ends in the same stage.
+
+    The two differ by float32 against float64 and by their collision and solver code, and closed loop the
+    controller feeds the differences back. Once the fingers squeeze the peg the contacts amplify them (6-10 mm
+    apart at step 60, the grasp a step or two earlier or later), so from there on the physics are compared by
+    outcome (tests/test_peg.py: the same scripted outcomes on both)."""
     mjx_env = PegInHole(episode_length=T, model=env.model, physics="mjx")
-    s0, traj = _rollout(mjx_env, AGREE_STEPS)(run["keys"][:4], POLICIES[:4])
-    np.testing.assert_array_equal(np.asarray(s0.pipeline_state.qpos), run["s0"].pipeline_state.qpos)
+    s0, traj = _rollout(mjx_env)(run["keys"], POLICIES)
+    np.testing.assert_allclose(np.asarray(s0.pipeline_state.qpos), run["s0"].pipeline_state.qpos, atol=1e-7)
     n = AGREE_STEPS
     for name in ("grip_pos", "peg_pos"):
         sl = P.OBS_SLICES[name]
-        diff = np.abs(np.asarray(traj.obs)[..., sl] - run["traj"].obs[:4, :n, sl]).max()
-        assert diff < AGREE_TOL[env.model], (name, diff)
+        diff = np.abs(np.asarray(traj.obs)[:, :n, sl] - run["traj"].obs[:, :n, sl]).max()
+        assert diff < AGREE_TOL, (name, diff)
+    stage_m, stage_c = np.asarray(traj.info["stage"]), run["traj"].info["stage"]
+    np.testing.assert_array_equal(stage_m[:, -1], stage_c[:, -1])
+    grasped = stage_c[:, -1] == 1
+    t_m, t_c = (stage_m >= 1).argmax(1)[grasped], (stage_c >= 1).argmax(1)[grasped]
+    assert np.abs(t_m - t_c).max() <= 3, (t_m, t_c)
 
 
 SHARDED = textwrap.dedent("""
