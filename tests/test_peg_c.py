@@ -159,9 +159,9 @@ AGREE_TOL = 1.5e-3  # metres: measured at most 1.0 mm (grip point) and 0.4 mm (p
 
 
 def test_c_and_mjx_agree_over_the_first_steps(env, run):
-    """From the same reset (the same qpos to float32 rounding: the reset draws in JAX), the same policies give the same grip
-    point and peg centre within 1.5 mm over the first 40 steps; each grasp is detected within 3 steps of the
-    other physics' and every env ends in the same stage.
+    """From the same reset (the same qpos to float32 rounding: the reset draws in JAX), the same policies give
+    the same grip point and peg centre within 1.5 mm over the first 40 steps; each grasp is detected within 3
+    steps of the other physics' and every env ends in the same stage.
 
     The two differ by float32 against float64 and by their collision and solver code, and closed loop the
     controller feeds the differences back. Once the fingers squeeze the peg the contacts amplify them (6-10 mm
