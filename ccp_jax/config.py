@@ -37,6 +37,8 @@ CoopScale = Literal["unit", "own"]
 COOP_SCALES = ("unit", "own")
 PegModel = Literal["arm", "hand"]
 PEG_MODELS = ("arm", "hand")  # envs_mjx.peg_in_hole.MODELS
+PegPhysics = Literal["mjx", "c"]
+PEG_PHYSICS = ("mjx", "c")  # envs_mjx.peg_in_hole.PHYSICS
 # The maze kinematics of the runs whose config.json predates maze_reverse / maze_slide: a robot that reversed and
 # stopped at walls (`migrate`).
 LEGACY_MAZE = {"maze_reverse": True, "maze_slide": False}
@@ -102,6 +104,9 @@ class Task:
     """Peg: the robot that does the task, arm (the Panda arm with the Franka Hand, IK-controlled) or hand (the
     Franka Hand alone on a slide along x: same scene, contacts, actions, observations and rewards; 1.6-2.5x
     faster on a CPU; docs/peg.md#the-hand-variant)."""
+    peg_physics: PegPhysics = "mjx"
+    """Peg: what steps the physics, mjx (MuJoCo MJX, inside the compiled program on any JAX device) or c (C MuJoCo
+    on the host CPU behind a JAX callback: the same task, 5-13x faster on a CPU; docs/peg.md#c-physics)."""
 
     def check(self) -> None:
         from ccp_jax.envs import ENV_NAMES  # local: config must not import jax eagerly
@@ -109,6 +114,7 @@ class Task:
         if self.env not in ENV_NAMES and ":" not in self.env:
             raise ConfigError("env", f"unknown env {self.env!r}; choose one of {ENV_NAMES} or 'module.path:factory'")
         _choice(self, "peg_model", PEG_MODELS, "peg model")
+        _choice(self, "peg_physics", PEG_PHYSICS, "peg physics")
         if not isinstance(self.rooms, int) or self.rooms < 2:
             raise ConfigError("rooms", f"must be an integer >= 2, got {self.rooms!r}")
         _positive_ints(self, ("max_episode_steps",))
@@ -584,8 +590,9 @@ class Config:
         for name in ("maze_reverse", "maze_slide"):
             if self.task.env != "maze" and getattr(self.ablations, name) != getattr(Ablations, name):
                 raise ConfigError(name, f"is an option of the maze; env {self.task.env!r} has no such setting")
-        if self.task.env != "peg" and self.task.peg_model != Task.peg_model:
-            raise ConfigError("peg_model", f"is an option of peg; env {self.task.env!r} has no such setting")
+        for name in ("peg_model", "peg_physics"):
+            if self.task.env != "peg" and getattr(self.task, name) != getattr(Task, name):
+                raise ConfigError(name, f"is an option of peg; env {self.task.env!r} has no such setting")
 
     def _check_cycles(self) -> None:
         budget, cycles = self.budget, self.ablations.train_cycles_per_epoch

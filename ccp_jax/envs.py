@@ -24,7 +24,8 @@ def make_env(config: "Config") -> "Env":
     if config.task.env == "peg":
         from envs_mjx.peg_in_hole import PegInHole
 
-        return PegInHole(episode_length=config.task.max_episode_steps, model=config.task.peg_model)
+        return PegInHole(episode_length=config.task.max_episode_steps, model=config.task.peg_model,
+                         physics=config.task.peg_physics)
     if config.task.env == "pusher":
         from envs_mjx.pusher import Pusher
 

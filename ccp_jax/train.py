@@ -109,7 +109,7 @@ class Args:
 
 # Settings shown with the run options; the others are grouped by their `Config` section (GROUPS). The grid's
 # settings are given by --eta / --eta-per-agent / --seeds / --first-seed.
-CORE = ("algo", "env", "rooms", "max_episode_steps", "peg_model", "total_steps", "eta_auto_rule")
+CORE = ("algo", "env", "rooms", "max_episode_steps", "peg_model", "peg_physics", "total_steps", "eta_auto_rule")
 GROUPS = ("budget", "sac", "ccp", "tp", "ablations")
 PROG = "python -m ccp_jax.train"
 DEFAULT_ETA = ("0.1",)  # --eta when neither ratio flag is given (the paper's best 3-room ratio)

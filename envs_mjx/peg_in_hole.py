@@ -7,6 +7,9 @@ a slide along x with a velocity servo (``assets/hand_peg.xml``): y, z and orient
 are held by construction instead of by the arm's controller, and the scene, peg,
 fingers, contacts, actions, observation layout, rewards, stages and resets are the
 arm's. On a CPU the hand steps 1.6x (one env) to 2.5x (16) faster (docs/peg.md#the-hand-variant).
+Two physics step either model (``physics``): "mjx", MuJoCo MJX inside the compiled program (any JAX device),
+and "c", C MuJoCo on the host behind ``jax.pure_callback`` (`envs_mjx.peg_c`; docs/peg.md#c-physics). The
+env's controller, observation, rewards and grasp check read one `Readout` that either physics fills.
 
 Scene (``assets/panda_peg.xml``; all numbers in metres, world frame, x from the robot
 towards the block): a block whose front face is at x = 0.60 has a 20 mm square
@@ -113,14 +116,17 @@ except Exception as _err:  # mujoco picks its GL backend at import; a broken one
         ) from _err
     raise
 from brax.envs.base import Env, State
+from flax import struct
 
 from envs_mjx import XLA_CPU_FLAG, cpu_xla_flags, warn_if_cpu_unconfigured  # noqa: F401  (re-exported)
 from envs_mjx.frames import mujoco_frames
+from envs_mjx.peg_c import CPhysics
 from mujoco import mjx
 
 ASSET = Path(__file__).resolve().parent / "assets" / "panda_peg.xml"
 HAND_ASSET = Path(__file__).resolve().parent / "assets" / "hand_peg.xml"
 MODELS = ("arm", "hand")  # the robot models (``PegInHole(model=...)``)
+PHYSICS = ("mjx", "c")  # what steps the physics (``PegInHole(physics=...)``): MuJoCo MJX, or C MuJoCo
 
 # Scene constants (must match the XML).
 HOLE_FACE_X = 0.60
@@ -180,6 +186,48 @@ def _solve_start_postures(m: mujoco.MjModel, xs: np.ndarray, grip_site: int) -> 
     return np.stack(out)
 
 
+@struct.dataclass
+class Readout:
+    """What the env's controller, observation, rewards and grasp check read of the physics, float32.
+
+    Either physics fills it: MJX from its ``mjx.Data`` (`PegInHole.readout`), C MuJoCo through the callback
+    (`envs_mjx.peg_c`). As in the data a physics step leaves, positions, rotations, contacts and the
+    Jacobian are those of the last substep's forward pass (before its integration), qpos and qvel after it.
+    """
+
+    qpos: jax.Array  # [nq]
+    qvel: jax.Array  # [nv]
+    ctrl: jax.Array  # [nu]: the commands the physics step ran with (zeros at reset)
+    grip_pos: jax.Array  # [3]: the grip site
+    grip_mat: jax.Array  # [3, 3]: the grip site's rotation
+    peg_pos: jax.Array  # [3]: the peg body (its centre)
+    hand_quat: jax.Array  # [4]: the hand body
+    tip_pos: jax.Array  # [3]: the peg tip site
+    touch: jax.Array  # bool[2]: the left / right pad touches the peg (penetrating or < 0.5 mm apart)
+    jac: jax.Array | None  # [6, 7]: the grip site's Jacobian w.r.t. the arm's joints (None for the hand)
+
+
+@struct.dataclass
+class CData:
+    """The pipeline state of ``physics="c"``: C MuJoCo's complete float64 state as uint32 words (`envs_mjx.peg_c`)
+    and its float32 readout. ``qpos``, ``qvel`` and ``ctrl`` are the readout's, as on an ``mjx.Data``."""
+
+    state: jax.Array  # uint32[2 * mj_stateSize(mjSTATE_INTEGRATION)]
+    readout: Readout
+
+    @property
+    def qpos(self) -> jax.Array:
+        return self.readout.qpos
+
+    @property
+    def qvel(self) -> jax.Array:
+        return self.readout.qvel
+
+    @property
+    def ctrl(self) -> jax.Array:
+        return self.readout.ctrl
+
+
 def _jacobian(d: Any, arm_v: np.ndarray, hand_root: int, point: jax.Array) -> jax.Array:
     """6 x 7 Jacobian of a point on the hand w.r.t. the arm joints (all ancestors of the hand)."""
     cdof = d.cdof[arm_v]
@@ -213,24 +261,30 @@ class _ArmDrive:
         q_arm = jax.vmap(lambda col: jnp.interp(x0, self.x_grid, col), in_axes=1)(jnp.asarray(self.q_grid))
         return qpos.at[self.robot_q].set(q_arm)
 
-    def control(self, d: Any, vx: jax.Array) -> jax.Array:
+    @property
+    def jac_dofs(self) -> np.ndarray:
+        """The dofs whose grip-site Jacobian the readout carries: the arm's joints."""
+        return self.robot_v
+
+    def mjx_jacobian(self, d: Any) -> jax.Array:
+        """The grip site's Jacobian [6, 7] w.r.t. the arm's joints, from an ``mjx.Data``."""
+        return _jacobian(d, self.robot_v, self.hand_root, d.site_xpos[self.grip])
+
+    def control(self, ro: Readout, vx: jax.Array) -> jax.Array:
         """Joint velocity commands, float32[7], moving the grip point at ``vx`` along x."""
-        p = d.site_xpos[self.grip]
-        R = d.site_xmat[self.grip].reshape(3, 3)
+        p, R, J = ro.grip_pos, ro.grip_mat, ro.jac
         k = self.hold_gain
         twist = jnp.concatenate([jnp.stack([vx, k * (0.0 - p[1]), k * (AXIS_Z - p[2])]),
                                  k * _rot_err(R, self.hand_R)])
-        J = _jacobian(d, self.robot_v, self.hand_root, p)
         JJt = J @ J.T + 1e-4 * jnp.eye(6)
         Jpinv = J.T @ jnp.linalg.solve(JJt, jnp.eye(6))
-        q = d.qpos[self.robot_q]
+        q = ro.qpos[self.robot_q]
         qdot = Jpinv @ twist + (jnp.eye(7) - Jpinv @ J) @ (2.0 * (jnp.asarray(self.q_home) - q))
         return jnp.clip(qdot, -self.limits, self.limits)
 
-    def grip_velocity(self, d: Any) -> jax.Array:
+    def grip_velocity(self, ro: Readout) -> jax.Array:
         """The grip point's linear and angular velocity, float32[6], world frame."""
-        J = _jacobian(d, self.robot_v, self.hand_root, d.site_xpos[self.grip])
-        return J @ d.qvel[self.robot_v]
+        return ro.jac @ ro.qvel[self.robot_v]
 
 
 class _HandDrive:
@@ -248,20 +302,28 @@ class _HandDrive:
         """``qpos`` with the grip point at (x0, 0, AXIS_Z)."""
         return qpos.at[self.robot_q].set(x0)
 
-    def control(self, d: Any, vx: jax.Array) -> jax.Array:
-        """The slide servo's velocity command, float32[1]."""
+    jac_dofs = np.zeros(0, int)  # the controller needs no Jacobian
+
+    def mjx_jacobian(self, d: Any) -> None:
         del d
+
+    def control(self, ro: Readout, vx: jax.Array) -> jax.Array:
+        """The slide servo's velocity command, float32[1]."""
+        del ro
         return vx[None]
 
-    def grip_velocity(self, d: Any) -> jax.Array:
+    def grip_velocity(self, ro: Readout) -> jax.Array:
         """The grip point's linear and angular velocity, float32[6]: the slide's along x, zeros else."""
-        return jnp.zeros(6).at[0].set(d.qvel[self.robot_v[0]])
+        return jnp.zeros(6).at[0].set(ro.qvel[self.robot_v[0]])
 
 
 class PegInHole(Env):
     """Grasp a two-section peg with a Panda and insert it (2 stages). See the module doc.
 
     ``model``: "arm" (the Panda arm with the Franka Hand) or "hand" (the hand alone on a slide); ``MODELS``.
+    ``physics``: "mjx" (MuJoCo MJX, runs on any JAX device) or "c" (C MuJoCo on the host behind
+    `jax.pure_callback`, 10x and more faster on a CPU; `envs_mjx.peg_c`, docs/peg.md#c-physics); ``PHYSICS``.
+    The task is the same on both: only the physics step and the forward pass behind the `Readout` move.
     """
 
     def __init__(
@@ -278,10 +340,13 @@ class PegInHole(Env):
         solver_iterations: int | None = None,
         solver_ls_iterations: int | None = None,
         model: str = "arm",
+        physics: str = "mjx",
     ):
         if model not in MODELS:
             raise ValueError(f"model: unknown robot model {model!r}; choose one of {MODELS}")
-        self.model = model
+        if physics not in PHYSICS:
+            raise ValueError(f"physics: unknown physics {physics!r}; choose one of {PHYSICS}")
+        self.model, self.physics = model, physics
         self.episode_length = int(episode_length)
         self.n_substeps = int(n_substeps)
         self.v_max = float(v_max)
@@ -322,9 +387,15 @@ class PegInHole(Env):
         self._pad_l, self._pad_r = m.geom("pad_left").id, m.geom("pad_right").id
         self._peg_geoms = np.array([m.geom("peg_thick").id, m.geom("peg_thin").id])
 
+        self._tip = m.site("peg_tip").id
+        self._c = None if physics == "mjx" else CPhysics(
+            m, self.n_substeps, self._grip, self._tip, self._peg_body, self._hand, (self._pad_l, self._pad_r),
+            self._peg_geoms, self._drive.jac_dofs)
+
         self._inserted = jnp.asarray(INSERTED, jnp.float32)
         self._hole_obs = jnp.asarray(np.r_[HOLE_MOUTH, 1.0, 0.0, 0.0, 0.0], jnp.float32)
-        warn_if_cpu_unconfigured("PegInHole", "about 50x")
+        if physics == "mjx":
+            warn_if_cpu_unconfigured("PegInHole", "about 50x")
 
     # ----- brax Env API -------------------------------------------------------------
     @property
@@ -337,7 +408,8 @@ class PegInHole(Env):
 
     @property
     def backend(self) -> str:
-        return "mjx"
+        """"mjx", or "c" for C MuJoCo (then no MJX runs in the env's programs: `envs_mjx.cpu_compiler_options`)."""
+        return self.physics
 
     def reset(self, rng: jax.Array) -> State:
         k_gap, k_y, k_yaw, k_x = jax.random.split(rng, 4)
@@ -353,12 +425,17 @@ class PegInHole(Env):
         qpos = jnp.zeros(self.mj_model.nq)
         qpos = self._drive.start_qpos(qpos, x0).at[self._fing_q].set(0.04)
         qpos = qpos.at[self._peg_q:self._peg_q + 3].set(centre).at[self._peg_q + 3:self._peg_q + 7].set(quat)
-        data = self._data0.replace(qpos=qpos, qvel=jnp.zeros(self.mj_model.nv), ctrl=jnp.zeros(self.mj_model.nu))
-        data = mjx.forward(self.sys, data)
+        ctrl = jnp.zeros(self.mj_model.nu)
+        if self._c is None:
+            data = self._data0.replace(qpos=qpos, qvel=jnp.zeros(self.mj_model.nv), ctrl=ctrl)
+            data = mjx.forward(self.sys, data)
+        else:
+            bits, flat = self._c.reset(qpos)
+            data = CData(state=bits, readout=Readout(ctrl=ctrl, **self._c.unpack(flat)))
+        ro = self.readout(data)
 
         stage = jnp.int32(0)
-        grip, c = data.site_xpos[self._grip], data.xpos[self._peg_body]
-        rewards = self._rewards(stage, grip, c, jnp.bool_(False))
+        rewards = self._rewards(stage, ro.grip_pos, ro.peg_pos, jnp.bool_(False))
         info = {
             "stage": stage,
             "rewards": rewards,
@@ -367,23 +444,21 @@ class PegInHole(Env):
             "grasp_count": jnp.int32(0),
         }
         metrics = {"success": jnp.float32(0.0)}
-        obs = self._obs(data, data)
+        obs = self._obs(ro)
         return State(pipeline_state=data, obs=obs, reward=rewards.sum(), done=jnp.float32(0.0),
                      metrics=metrics, info=info)
 
     def step(self, state: State, action: jax.Array) -> State:
         action = jnp.clip(jnp.asarray(action, jnp.float32), -1.0, 1.0)
-        d_prev = state.pipeline_state
-        ctrl = self._control(d_prev, action)
-        d = d_prev.replace(ctrl=ctrl)
-        d = jax.lax.fori_loop(0, self.n_substeps, lambda _, x: mjx.step(self.sys, x), d)
+        ctrl = self._control(self.readout(state.pipeline_state), action)
+        d = self._physics_step(state.pipeline_state, ctrl)
+        ro = self.readout(d)
 
-        finite = jnp.all(jnp.isfinite(d.qpos)) & jnp.all(jnp.isfinite(d.qvel)) & jnp.all(jnp.abs(d.qvel) < 1e3)
-        grip, c = d.site_xpos[self._grip], d.xpos[self._peg_body]
+        finite = jnp.all(jnp.isfinite(ro.qpos)) & jnp.all(jnp.isfinite(ro.qvel)) & jnp.all(jnp.abs(ro.qvel) < 1e3)
+        grip, c = ro.grip_pos, ro.peg_pos
 
         # Stable grasp: both pads touching the peg while closing, for grasp_hold_steps steps.
-        touch_l, touch_r = self._pad_contacts(d)
-        grasping = touch_l & touch_r & (action[1] >= self.grasp_close_min)
+        grasping = ro.touch[0] & ro.touch[1] & (action[1] >= self.grasp_close_min)
         count = jnp.where(grasping, state.info["grasp_count"] + 1, 0)
         stage = jnp.maximum(state.info["stage"], (count >= self.grasp_hold_steps).astype(jnp.int32))
 
@@ -393,7 +468,7 @@ class PegInHole(Env):
         success = inserted.astype(jnp.float32)
         timeout = ((steps >= self.episode_length) | ~finite).astype(jnp.float32)
         done = jnp.maximum(success, timeout)
-        obs = jnp.where(finite, self._obs(d, d_prev), 0.0)
+        obs = jnp.where(finite, self._obs(ro), 0.0)
         rewards = jnp.where(finite, rewards, 0.0)
         info = {
             "stage": stage,
@@ -404,6 +479,25 @@ class PegInHole(Env):
         }
         return State(pipeline_state=d, obs=obs, reward=rewards.sum(), done=done,
                      metrics={"success": success}, info=info)
+
+    # ----- the physics: MJX or C, and what the env reads of it -------------------------
+    def _physics_step(self, d: Any, ctrl: jax.Array) -> Any:
+        """``n_substeps`` physics steps under ``ctrl`` float32[nu]: the next pipeline state."""
+        if self._c is None:
+            d = d.replace(ctrl=ctrl)
+            return jax.lax.fori_loop(0, self.n_substeps, lambda _, x: mjx.step(self.sys, x), d)
+        bits, flat = self._c.step(d.state, ctrl)
+        return CData(state=bits, readout=Readout(ctrl=ctrl, **self._c.unpack(flat)))
+
+    def readout(self, d: Any) -> Readout:
+        """The `Readout` of one pipeline state (an ``mjx.Data``, or `CData` whose readout it carries)."""
+        if isinstance(d, CData):
+            return d.readout
+        touch_l, touch_r = self._pad_contacts(d)
+        return Readout(qpos=d.qpos, qvel=d.qvel, ctrl=d.ctrl, grip_pos=d.site_xpos[self._grip],
+                       grip_mat=d.site_xmat[self._grip].reshape(3, 3), peg_pos=d.xpos[self._peg_body],
+                       hand_quat=d.xquat[self._hand], tip_pos=d.site_xpos[self._tip],
+                       touch=jnp.stack([touch_l, touch_r]), jac=self._drive.mjx_jacobian(d))
 
     # ----- pieces -------------------------------------------------------------------
     def _rewards(self, stage, grip, c, inserted):
@@ -424,22 +518,23 @@ class PegInHole(Env):
 
         return touch(self._pad_l), touch(self._pad_r)
 
-    def _control(self, d, action):
-        """ctrl: the robot's commands (the arm's 7 joint velocities or the hand's slide velocity), then the
-        gripper's (-a[1]: its motor's +1 opens)."""
-        x = d.site_xpos[self._grip, 0]
+    def _control(self, ro: Readout, action: jax.Array) -> jax.Array:
+        """ctrl float32[nu]: the robot's commands (the arm's 7 joint velocities or the hand's slide velocity), then
+        the gripper's (-a[1]: its motor's +1 opens)."""
+        x = ro.grip_pos[0]
         lo, hi = GRIP_X_LIMITS
         vx = jnp.clip(action[0] * self.v_max, (lo - x) / 0.1, (hi - x) / 0.1)
-        return jnp.concatenate([self._drive.control(d, vx), -action[1:2]])
+        return jnp.concatenate([self._drive.control(ro, vx), -action[1:2]])
 
-    def _obs(self, d, d_prev):
-        grip, c = d.site_xpos[self._grip], d.xpos[self._peg_body]
-        ee_vel = self._drive.grip_velocity(d)
-        hand_quat = d.xquat[self._hand]
-        peg_quat = d.qpos[self._peg_q + 3:self._peg_q + 7]
-        peg_vel = d.qvel[self._peg_v:self._peg_v + 6]
-        opening = jnp.sum(d.qpos[self._fing_q])[None]
-        opening_rate = jnp.sum(d.qvel[self._fing_v])[None]
+    def _obs(self, ro: Readout) -> jax.Array:
+        """The observation float32[41] (module doc; ``OBS_SLICES``)."""
+        grip, c = ro.grip_pos, ro.peg_pos
+        ee_vel = self._drive.grip_velocity(ro)
+        hand_quat = ro.hand_quat
+        peg_quat = ro.qpos[self._peg_q + 3:self._peg_q + 7]
+        peg_vel = ro.qvel[self._peg_v:self._peg_v + 6]
+        opening = jnp.sum(ro.qpos[self._fing_q])[None]
+        opening_rate = jnp.sum(ro.qvel[self._fing_v])[None]
         return jnp.concatenate([
             grip, hand_quat, ee_vel,
             c, peg_quat, peg_vel,
@@ -450,19 +545,26 @@ class PegInHole(Env):
 
     # ----- helpers for tests, scripted controllers and the C simulator -------------
     def peg_depth(self, data) -> jax.Array:
-        """How far the thin section's tip is past the block face (full insertion: 0.10 m)."""
-        return data.site_xpos[self.mj_model.site("peg_tip").id, 0] - HOLE_FACE_X
+        """How far the thin section's tip is past the block face (full insertion: 0.10 m), of one pipeline state."""
+        return self.readout(data).tip_pos[0] - HOLE_FACE_X
 
     def grip_x(self, data) -> jax.Array:
-        return data.site_xpos[self._grip, 0]
+        return self.readout(data).grip_pos[0]
 
     def peg_centre(self, data) -> jax.Array:
-        return data.xpos[self._peg_body]
+        return self.readout(data).peg_pos
+
+    def exact_qpos(self, pipeline_states: Any) -> np.ndarray:
+        """qpos [..., nq] of pipeline states with any leading axes, on the host: C MuJoCo's float64 qpos from
+        the carried state bits, or MJX's float32 qpos."""
+        if isinstance(pipeline_states, CData):
+            return self._c.state_qpos(np.asarray(pipeline_states.state))
+        return np.asarray(pipeline_states.qpos)
 
     def render_frames(self, states: State) -> np.ndarray:
         """The contract's render hook: one episode's stacked states (leaves [T, ...]) as MuJoCo frames from the
         "side" camera, uint8[T, 240, 320, 3] (`render_frames`)."""
-        return render_frames(self, states.pipeline_state.qpos)
+        return render_frames(self, self.exact_qpos(states.pipeline_state))
 
 
 # ----- scripted controllers (tests, benchmarks) ------------------------------------------
@@ -497,14 +599,16 @@ def render_frames(
 ) -> np.ndarray:
     """Render MJX states to uint8 RGB frames, shape [T, height, width, 3] (`envs_mjx.frames.mujoco_frames`).
 
-    ``pipeline_states``: a sequence of ``mjx.Data`` (or ``mujoco.MjData``), or one
-    ``mjx.Data`` whose leaves have a leading time axis (e.g. the stacked
+    ``pipeline_states``: a sequence of ``mjx.Data``, `CData` (or ``mujoco.MjData``), or one
+    ``mjx.Data`` or `CData` whose leaves have a leading time axis (e.g. the stacked
     ``state.pipeline_state`` of a ``lax.scan`` rollout of one environment), or an
     array of qpos, shape [T, nq].
     Cameras in the scene: "side" (close-up of peg and hole), "wide", "top".
     """
     if isinstance(pipeline_states, (list, tuple)):
-        qpos = np.stack([np.asarray(s.qpos) for s in pipeline_states])
+        qpos = np.stack([env.exact_qpos(s) if isinstance(s, CData) else np.asarray(s.qpos) for s in pipeline_states])
+    elif isinstance(pipeline_states, CData):
+        qpos = env.exact_qpos(pipeline_states)
     elif hasattr(pipeline_states, "qpos"):
         qpos = np.asarray(pipeline_states.qpos)
     else:  # an array of qpos

@@ -37,6 +37,8 @@ from ccp_jax.train import Args, config_from_args, parse_args
     (dict(maze_reverse="no"), "maze_reverse"),
     (dict(env="peg", peg_model="gripper"), "peg_model"),
     (dict(peg_model="hand"), "peg_model"),  # a peg option on another env (tiny's maze)
+    (dict(env="peg", peg_physics="warp"), "peg_physics"),
+    (dict(peg_physics="c"), "peg_physics"),  # a peg option on another env (tiny's maze)
 ])
 def test_bad_config_names_the_field(overrides, field):
     with pytest.raises(ConfigError) as err:

@@ -1,10 +1,11 @@
 """Peg in hole (envs_mjx/peg_in_hole.py): physics, the paper's grasp trade-off, the env contract.
 
-Every check that runs MJX runs on both robot models, the arm and the hand (the `env` fixture's params):
-the same scripted grasps must end the same way on both. Per model, one compiled program: a
-module-scoped fixture rolls out 64 environments (jit + vmap + lax.scan) under four scripted
-policies, and the tests read its trajectories. On a 2-core CPU that is ~1 min (arm) and ~40 s
-(hand) to compile and ~20 s to run.
+Every check that steps the env runs on both robot models, the arm and the hand, and on both physics,
+MJX and C MuJoCo (the `env` fixture's params): the same scripted grasps must end the same way on all four.
+Per model and physics, one compiled program: a module-scoped fixture rolls out 64 environments (jit + vmap +
+lax.scan) under four scripted policies, and the tests read its trajectories. On a 2-core CPU that is ~1 min
+(arm) and ~40 s (hand) to compile and ~20 s to run on MJX, ~5 s each on C. The C physics' own checks (exact
+state, determinism, batching, sharding, agreement with MJX) are in tests/test_peg_c.py.
 """
 from __future__ import annotations
 
@@ -30,9 +31,10 @@ THICK, CENTRE, RELEASE = range(0, 8), range(8, 16), range(16, 24)  # the rest ac
 FULL_DEPTH = P.THIN_LEN  # 0.10 m of thin section past the block face
 
 
-@pytest.fixture(scope="module", params=P.MODELS)
+@pytest.fixture(scope="module", params=[(m, p) for m in P.MODELS for p in P.PHYSICS], ids="-".join)
 def env(request):
-    return PegInHole(episode_length=T, model=request.param)
+    model, physics = request.param
+    return PegInHole(episode_length=T, model=model, physics=physics)
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +51,7 @@ def run(env):
             out = dict(obs=s2.obs, reward=s2.reward, rewards=s2.info["rewards"], stage=s2.info["stage"],
                        done=s2.done, truncation=s2.info["truncation"], success=s2.metrics["success"],
                        steps=s2.info["steps"], depth=env.peg_depth(d), qpos=d.qpos, ctrl=d.ctrl,
-                       grip=d.site_xpos[env._grip])
+                       grip=env.readout(d).grip_pos)
             return s2, out
 
         _, traj = jax.lax.scan(body, s0, jax.random.split(k_act, T))
@@ -141,8 +143,15 @@ def test_stage_never_decreases_and_rewards_are_consistent(run):
     assert np.all(tr["truncation"][:, :-1] == 0.0)
 
 
-def test_release_after_grasp_keeps_stage(run):
+def test_release_after_grasp_keeps_stage(run, env):
+    """Grasp, then open and slide on: the stage stays, and the peg stays where it was let go (within 5 mm).
+
+    C MuJoCo, unlike MJX, sometimes flicks the peg sideways along the table as the fingers open (seen on the
+    hand, 1-2 of 8 releases, 15-35 mm; also when C replays MJX's own commands, so it is the simulator's, not
+    this env's; docs/peg.md#c-physics): on the C physics up to 2 of the 8 may have moved, on the table.
+    """
     tr = run["np"]
+    moved = []
     for i in RELEASE:
         t = _first(tr["stage"][i] >= 1)
         assert 0 <= t < T - 30
@@ -153,7 +162,10 @@ def test_release_after_grasp_keeps_stage(run):
         assert tr["obs"][i, -1, OBS_SLICES["finger_opening"]][0] > 0.07
         assert tr["grip"][i, -1, 0] > P.HOLE_FACE_X - P.PAD_HALF_X - 0.003
         peg = tr["obs"][i, :, OBS_SLICES["peg_pos"]]
-        assert np.linalg.norm(peg[-1] - peg[t]) < 0.005
+        assert abs(peg[-1, 2] - P.AXIS_Z) < 0.003  # on the table
+        if np.linalg.norm(peg[-1] - peg[t]) >= 0.005:
+            moved.append(i)
+    assert len(moved) <= (2 if env.physics == "c" else 0), moved
 
 
 def test_truncation_at_episode_length(run):
@@ -172,7 +184,7 @@ def test_reset_randomisation_within_documented_ranges(run, env):
     peg = q[:, env._peg_q:env._peg_q + 7]
     gap = P.HOLE_FACE_X - P.PEG_HALF - peg[:, 0]
     yaw = 2 * np.arctan2(peg[:, 6], peg[:, 3])
-    grip = np.asarray(s0.pipeline_state.site_xpos[:, env._grip])
+    grip = np.asarray(jax.vmap(env.readout)(s0.pipeline_state).grip_pos)
     eps = 1e-5
     assert np.all((gap >= P.GAP_RANGE[0] - eps) & (gap <= P.GAP_RANGE[1] + eps))
     assert np.all((peg[:, 1] >= P.PEG_Y_RANGE[0] - eps) & (peg[:, 1] <= P.PEG_Y_RANGE[1] + eps))
@@ -196,7 +208,7 @@ def test_reset_randomisation_within_documented_ranges(run, env):
 
 def test_jit_vmap_64_shapes_and_dtypes(run, env):
     s0, traj = run["s0"], run["traj"]
-    assert (env.num_stages, env.action_size, env.observation_size, env.backend) == (2, 2, 41, "mjx")
+    assert (env.num_stages, env.action_size, env.observation_size, env.backend) == (2, 2, 41, env.physics)
     chex.assert_shape(s0.obs, (B, env.observation_size))
     chex.assert_type([s0.obs, s0.reward, s0.done, s0.info["rewards"], s0.info["truncation"],
                       s0.metrics["success"]], jnp.float32)
@@ -213,7 +225,9 @@ def test_jit_vmap_64_shapes_and_dtypes(run, env):
 
 
 def test_mjx_agrees_with_c_mujoco(run, env):
-    """Replay the MJX rollout's joint commands in C MuJoCo (same model, substeps, start).
+    """Replay the rollout's joint commands in C MuJoCo (same model, substeps, start).
+
+    On the C physics the replay is the env's own trajectory: equal to float32 rounding of the qpos.
 
     Arm: over the first 100 control steps (2 s: approach, grasp, most of the push) the peg
     centre within 3 mm, finger joints within 2 mm, arm joints within 0.01 rad. Hand: the same
@@ -230,6 +244,9 @@ def test_mjx_agrees_with_c_mujoco(run, env):
     for i in (THICK[0], CENTRE[0]):
         qc = simulate_c(env, q0[i], tr["ctrl"][i])
         qm = tr["qpos"][i]
+        if env.physics == "c":
+            np.testing.assert_array_equal(qc.astype(np.float32), qm)
+            continue
         for n, (peg_tol, robot_tol) in tol.items():
             assert np.abs(qc[:n, pq] - qm[:n, pq]).max() < peg_tol, (i, n)
             assert np.abs(qc[:n, env._fing_q] - qm[:n, env._fing_q]).max() < 2e-3, (i, n)
@@ -385,6 +402,8 @@ def test_hand_model_has_the_arm_models_scene_fingers_and_contacts():
 def test_unknown_model_is_refused_before_anything_compiles():
     with pytest.raises(ValueError, match="model: unknown robot model 'gripper'"):
         PegInHole(model="gripper")
+    with pytest.raises(ValueError, match="physics: unknown physics 'warp'"):
+        PegInHole(physics="warp")
 
 
 @pytest.mark.slow
@@ -409,10 +428,11 @@ def test_more_seeds_and_full_length_episodes(model):
 
 
 def test_make_env_builds_the_configured_model():
-    from ccp_jax.config import PEG_MODELS, make_config
+    from ccp_jax.config import PEG_MODELS, PEG_PHYSICS, make_config
     from ccp_jax.envs import make_env
 
-    assert PEG_MODELS == P.MODELS
+    assert PEG_MODELS == P.MODELS and PEG_PHYSICS == P.PHYSICS
     for model in P.MODELS:
-        env = make_env(make_config("tiny", env="peg", peg_model=model))
-        assert env.model == model and env.episode_length == 100
+        for physics in P.PHYSICS:
+            env = make_env(make_config("tiny", env="peg", peg_model=model, peg_physics=physics))
+            assert (env.model, env.physics, env.episode_length) == (model, physics, 100)

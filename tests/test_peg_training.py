@@ -1,21 +1,58 @@
-"""Every algorithm trains on the MJX peg-in-hole task (one tiny epoch each), on both robot models."""
+"""Every algorithm trains on the peg-in-hole task (one tiny epoch each), on both robot models and both physics;
+a run on the C physics resumes bit for bit."""
 import json
 
+import jax
+import numpy as np
 import pytest
 
+from ccp_jax import checkpoint
+from ccp_jax.config import Config
+from ccp_jax.envs import make_env
+from ccp_jax.grid import make_grid_train
 from ccp_jax.train import main
 
+TINY = ["--preset", "tiny", "--steps-per-epoch", "40", "--max-episode-steps", "20", "--eval-episodes", "2",
+        "--train-loops-per-epoch", "5", "--batch-size", "8", "--no-progress", "--no-tensorboard"]
 
-@pytest.mark.parametrize("algo,model", [("csac", "arm"), pytest.param("naive", "arm", marks=pytest.mark.slow),
-                                        pytest.param("sac", "arm", marks=pytest.mark.slow),
-                                        pytest.param("csac", "hand", marks=pytest.mark.slow)])
-def test_one_epoch_on_peg(tmp_path, algo, model):
-    summary = main(["--env", "peg", "--peg-model", model, "--algo", algo, "--preset", "tiny",
-                    "--steps-per-epoch", "40", "--total-steps", "40", "--max-episode-steps", "20",
-                    "--eval-episodes", "2",
-                    "--train-loops-per-epoch", "5", "--batch-size", "8", "--out", str(tmp_path / algo),
-                    "--no-progress", "--no-tensorboard"])
-    assert json.loads((tmp_path / algo / "config.json").read_text())["task"]["peg_model"] == model
+
+@pytest.mark.parametrize("algo,model,physics", [
+    ("csac", "arm", "mjx"), pytest.param("naive", "arm", "mjx", marks=pytest.mark.slow),
+    pytest.param("sac", "arm", "mjx", marks=pytest.mark.slow),
+    pytest.param("csac", "hand", "mjx", marks=pytest.mark.slow), ("csac", "hand", "c"),
+    pytest.param("sac", "arm", "c", marks=pytest.mark.slow)])
+def test_one_epoch_on_peg(tmp_path, algo, model, physics):
+    summary = main(["--env", "peg", "--peg-model", model, "--peg-physics", physics, "--algo", algo,
+                    "--total-steps", "40", "--out", str(tmp_path / algo)] + TINY)
+    task = json.loads((tmp_path / algo / "config.json").read_text())["task"]
+    assert (task["peg_model"], task["peg_physics"]) == (model, physics)
     member = summary["members"][0]
     assert member["algo"] == algo and member["env_steps"] == 40 and member["epochs"] == 1
     assert 0.0 <= member["final_success"] <= 1.0
+
+
+def _final(run_dir):
+    """(metrics rows without wall times, the last checkpoint's state) of a run."""
+    rows = [json.loads(line) for line in (run_dir / "metrics.jsonl").read_text().splitlines()]
+    for r in rows:
+        r.pop("epoch_wall_s")
+    config = Config.from_dict(json.loads((run_dir / "config.json").read_text()))
+    trainer = make_grid_train(config, make_env(config))
+    mngr = checkpoint.manager(run_dir)
+    _, state = checkpoint.restore(mngr, trainer.abstract_state(config.grid_arrays()[1]))
+    mngr.close()
+    return rows, jax.device_get(state)
+
+
+def test_c_physics_run_resumes_bit_for_bit(tmp_path):
+    """Two epochs straight, against one epoch and a resume that raises the budget to two: the same metrics and
+    the same final state, the env's carried C MuJoCo state included."""
+    args = ["--env", "peg", "--peg-model", "hand", "--peg-physics", "c", "--checkpoint-every", "1"] + TINY
+    main(args + ["--total-steps", "80", "--out", str(tmp_path / "full")])
+    main(args + ["--total-steps", "40", "--out", str(tmp_path / "split")])
+    main(["--resume", str(tmp_path / "split"), "--total-steps", "80", "--no-progress"])
+    (rows_a, a), (rows_b, b) = _final(tmp_path / "full"), _final(tmp_path / "split")
+    assert rows_a == rows_b and len(rows_a) == 2
+    assert a.env_state.pipeline_state.state.dtype == np.uint32
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        np.testing.assert_array_equal(x, y)

@@ -1,6 +1,7 @@
 """What C MuJoCo behind a JAX callback would give the peg env: control steps/s of the bare physics.
 
-Not an env: a measurement for docs/peg.md#where-a-control-step-goes. The models' own physics (10 `mj_step`
+Not an env (that is `PegInHole(physics="c")`, timed by peg_speed.py): the measurement behind it, for
+docs/peg.md#where-a-control-step-goes. The models' own physics (10 `mj_step`
 of 2 ms per control step, C MuJoCo, one thread) is called from a jitted, vmapped `lax.scan` through
 `jax.pure_callback` (vmap_method="broadcast_all": one host call per control step for the whole batch,
 a Python loop over the batch inside), with random commands for the robot's actuators and the gripper.

@@ -1,15 +1,16 @@
-"""Peg-in-hole control steps per second, the arm against the hand model, side by side in one process.
+"""Peg-in-hole control steps per second, arm and hand on MJX and C physics, side by side in one process.
 
-For each model and batch size: ``jax.jit(jax.vmap(rollout))``, where ``rollout`` resets and then runs
-``lax.scan`` over ``--steps`` control steps (10 physics steps each) with uniformly random actions in
-[-1, 1]. Compile is excluded (one warm-up call). The timed calls alternate between the models, one call
-of each per trial, so both see the same load on a shared CPU; the figure is the median over ``--trials``
-of batch * steps / seconds per call, and the ratio hand / arm is the median of the trials' paired ratios.
+For each model x physics (``--envs``) and batch size: ``jax.jit(jax.vmap(rollout))``, where ``rollout``
+resets and then runs ``lax.scan`` over ``--steps`` control steps (10 physics steps each) with uniformly
+random actions in [-1, 1]. Compile is excluded (one warm-up call). The timed calls alternate between the
+envs, one call of each per trial, so all see the same load on a shared CPU; the figure is the median over
+``--trials`` of batch * steps / seconds per call, and each env's ratio to the MJX arm is the median of the
+trials' paired ratios.
 
-    python experiments/bench/peg_speed.py                  # batches 1 and 16
-    python experiments/bench/peg_speed.py --batches 1 16 64 --trials 7 --json out.json
+    python experiments/bench/peg_speed.py                  # all four, batches 1 and 16
+    python experiments/bench/peg_speed.py --envs arm-mjx hand-c --batches 1 16 64 --trials 7 --json out.json
 
-Compiling takes ≈ 1-2 min per model and batch on a 2-core CPU.
+Compiling takes ≈ 1-2 min per MJX env and batch on a 2-core CPU, seconds for C.
 """
 from __future__ import annotations
 
@@ -26,7 +27,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from envs_mjx import configure_cpu  # noqa: E402
 
-MODELS = ("arm", "hand")
+ENVS = ("arm-mjx", "hand-mjx", "arm-c", "hand-c")  # model-physics
+BASE = "arm-mjx"
 
 
 def compiled_rollout(env, batch: int, steps: int):
@@ -64,13 +66,15 @@ def measure(batch: int, steps: int, trials: int, envs: dict) -> dict:
             jax.block_until_ready(fn(keys))
             times[name].append(time.perf_counter() - t0)
     rates = {name: batch * steps / statistics.median(t) for name, t in times.items()}
-    paired = statistics.median(a / h for a, h in zip(times["arm"], times["hand"]))
-    return {"batch": batch, "steps": steps, "trials": trials, "steps_per_s": rates, "hand_over_arm": paired,
+    base = times.get(BASE)
+    paired = {name: statistics.median(b / x for b, x in zip(base, t)) for name, t in times.items()} if base else {}
+    return {"batch": batch, "steps": steps, "trials": trials, "steps_per_s": rates, "over_arm_mjx": paired,
             "compile_and_first_s": compile_s, "times_s": times}
 
 
 def main(argv=None) -> list[dict]:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--envs", nargs="+", default=list(ENVS), choices=ENVS, help="model-physics pairs")
     p.add_argument("--batches", type=int, nargs="+", default=[1, 16])
     p.add_argument("--steps", type=int, default=100, help="control steps per env and call")
     p.add_argument("--trials", type=int, default=5)
@@ -85,17 +89,16 @@ def main(argv=None) -> list[dict]:
             "machine": platform.machine(), "processor": platform.processor(),
             "XLA_FLAGS": os.environ.get("XLA_FLAGS", "")}
     print(json.dumps(info), flush=True)
-    envs = {name: PegInHole(model=name) for name in MODELS}
+    envs = {name: PegInHole(model=name.split("-")[0], physics=name.split("-")[1]) for name in args.envs}
     results = []
     for batch in args.batches:
         r = measure(batch, args.steps, args.trials, envs)
         results.append(r)
-        arm, hand = r["steps_per_s"]["arm"], r["steps_per_s"]["hand"]
-        print(f"batch {batch:3d}: arm {arm:8.1f}  hand {hand:8.1f} control steps/s  "
-              f"hand/arm {r['hand_over_arm']:5.1f}x  "
-              f"(median of {args.trials} interleaved calls of {args.steps} steps; compile+first "
-              f"arm {r['compile_and_first_s']['arm']:.0f} s, hand {r['compile_and_first_s']['hand']:.0f} s)",
-              flush=True)
+        print(f"batch {batch:3d} (median of {args.trials} interleaved calls of {args.steps} steps):", flush=True)
+        for name in envs:
+            ratio = f"{r['over_arm_mjx'][name]:5.1f}x the MJX arm" if r["over_arm_mjx"] else ""
+            print(f"  {name:9s} {r['steps_per_s'][name]:8.1f} control steps/s  {ratio}  "
+                  f"(compile+first {r['compile_and_first_s'][name]:.0f} s)", flush=True)
     if args.json:
         args.json.write_text(json.dumps({"info": info, "results": results}, indent=1))
     return results
