@@ -72,6 +72,11 @@ while the gripper is commanded to close with at least ``grasp_close_min`` (0.2, 
 14 N), for ``grasp_hold_steps`` (3) consecutive control steps. The stage never
 decreases (a later regrasp is allowed; it does not change the stage).
 
+Metrics (at an evaluation episode's end, in the rows' ``eval_end``): ``success``, and where
+the grasp that handed over holds the peg (`grasp_metrics`): ``grasp_thick`` (pads wholly
+on the thick section, the grasp that can insert) and ``grasp_thin`` (any other); both 0
+for an episode that never grasped, so their sum is the hand-over rate.
+
 Reset randomisation (uniform, documented and tested):
   peg gap (tip to block face)  [0.020, 0.050] m  -> peg centre x in [0.470, 0.500]
   peg y offset                 [-0.004, 0.004] m
@@ -442,8 +447,9 @@ class PegInHole(Env):
             "truncation": jnp.float32(0.0),
             "steps": jnp.int32(0),
             "grasp_count": jnp.int32(0),
+            "grasp_offset": jnp.float32(0.0),
         }
-        metrics = {"success": jnp.float32(0.0)}
+        metrics = {"success": jnp.float32(0.0), **grasp_metrics(stage, jnp.float32(0.0))}
         obs = self._obs(ro)
         return State(pipeline_state=data, obs=obs, reward=rewards.sum(), done=jnp.float32(0.0),
                      metrics=metrics, info=info)
@@ -461,6 +467,9 @@ class PegInHole(Env):
         grasping = ro.touch[0] & ro.touch[1] & (action[1] >= self.grasp_close_min)
         count = jnp.where(grasping, state.info["grasp_count"] + 1, 0)
         stage = jnp.maximum(state.info["stage"], (count >= self.grasp_hold_steps).astype(jnp.int32))
+        # Where along the peg the hand-over grasp holds it: the grip point's x from the peg's centre, at the step the
+        # grasp is recognised (kept for the rest of the episode).
+        offset = jnp.where(stage > state.info["stage"], grip[0] - c[0], state.info["grasp_offset"])
 
         inserted = (stage >= 1) & (jnp.linalg.norm(c - self._inserted) < self.success_tol) & finite
         rewards = self._rewards(stage, grip, c, inserted)
@@ -476,9 +485,10 @@ class PegInHole(Env):
             "truncation": timeout * (1.0 - success),
             "steps": steps,
             "grasp_count": count,
+            "grasp_offset": offset,
         }
         return State(pipeline_state=d, obs=obs, reward=rewards.sum(), done=done,
-                     metrics={"success": success}, info=info)
+                     metrics={"success": success, **grasp_metrics(stage, offset)}, info=info)
 
     # ----- the physics: MJX or C, and what the env reads of it -------------------------
     def _physics_step(self, d: Any, ctrl: jax.Array) -> Any:
@@ -568,6 +578,16 @@ class PegInHole(Env):
 
 
 # ----- scripted controllers (tests, benchmarks) ------------------------------------------
+def grasp_metrics(stage: jax.Array, offset: jax.Array) -> dict[str, jax.Array]:
+    """The episode-end diagnostics of where the hand-over grasp holds the peg (float32[] each, 0 or 1; both 0 before
+    a grasp): `grasp_thick`, the pads wholly behind the shoulder (on the thick section: the grasp that can insert
+    fully), and `grasp_thin`, any other grasp (the pads reach the thin section and stop at the block face).
+    ``offset``: the grip point's x from the peg's centre at the grasp (`info['grasp_offset']`)."""
+    grasped = stage >= 1
+    thick = offset <= -(CENTRE_TO_SHOULDER + PAD_HALF_X)
+    return {"grasp_thick": (grasped & thick).astype(jnp.float32), "grasp_thin": (grasped & ~thick).astype(jnp.float32)}
+
+
 def scripted_action(state: State, policy: jax.Array, key: jax.Array) -> jax.Array:
     """A scripted controller's action, float32[2], pure JAX (vmap over ``policy`` to mix them).
 

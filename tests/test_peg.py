@@ -51,7 +51,8 @@ def run(env):
             out = dict(obs=s2.obs, reward=s2.reward, rewards=s2.info["rewards"], stage=s2.info["stage"],
                        done=s2.done, truncation=s2.info["truncation"], success=s2.metrics["success"],
                        steps=s2.info["steps"], depth=env.peg_depth(d), qpos=d.qpos, ctrl=d.ctrl,
-                       grip=env.readout(d).grip_pos)
+                       grip=env.readout(d).grip_pos, grasp_thick=s2.metrics["grasp_thick"],
+                       grasp_thin=s2.metrics["grasp_thin"])
             return s2, out
 
         _, traj = jax.lax.scan(body, s0, jax.random.split(k_act, T))
@@ -80,6 +81,9 @@ def test_thick_section_grasp_reaches_success(run):
         np.testing.assert_array_equal(tr["rewards"][i, t_succ], [1.0, 1.0])
         assert tr["done"][i, t_succ] == 1.0 and tr["truncation"][i, t_succ] == 0.0
         assert np.all(tr["done"][i, :t_succ] == 0.0)
+        # the episode-end diagnostic names the grasp: on the thick section, from the grasp on
+        assert np.all(tr["grasp_thick"][i, :t_grasp] == 0.0) and np.all(tr["grasp_thick"][i, t_grasp:] == 1.0)
+        assert not tr["grasp_thin"][i].any()
 
 
 def test_centre_grasp_stalls_short_of_full_insertion(run):
@@ -94,6 +98,7 @@ def test_centre_grasp_stalls_short_of_full_insertion(run):
         assert tr["rewards"][i, -1, 1] < 0.6  # exp(-20 * ~0.03)
         # Timed out, not terminated.
         assert tr["done"][i, -1] == 1.0 and tr["truncation"][i, -1] == 1.0
+        assert tr["grasp_thin"][i, -1] == 1.0 and tr["grasp_thick"][i, -1] == 0.0  # a thin-section grasp
 
 
 def test_grasp_detection_is_a_closed_grasp(run, env):
