@@ -15,6 +15,7 @@ import curves  # noqa: E402
 import independent_ratios  # noqa: E402
 import paper_budget  # noqa: E402
 import pbt_compare  # noqa: E402
+import peg_budget  # noqa: E402
 import table1  # noqa: E402
 from ccp_jax.config import ConfigError  # noqa: E402
 
@@ -562,3 +563,32 @@ def test_pbt_compare_keeps_the_fittest_member_and_scores_the_sweeps_pick_on_the_
     text = pbt_compare.report(args, tmp_path, "maze2")
     assert "| population | best | 0.80 [" in text and "| 0.60 1.00 |" in text
     assert "| sweep's pick, on the other blocks' seeds | η = 0.5, 0.1 | 0.25 [" in text
+
+
+def _fake_peg_sweep(folder: Path, finals: dict[float, tuple[float, float, float]]) -> None:
+    """A finished peg_budget sweep: every member of ratio eta ends with (success, hand-over, thick-section grasps)."""
+    from ccp_jax import outputs
+
+    config = peg_budget.SWEEP.config(smoke=True)
+    folder.mkdir(parents=True)
+    outputs.write_json(folder / "config.json", config.to_dict())
+    rows = [dict(member=m, seed=seed, eta=list(eta), algo="csac", epoch=1, env_steps=200,
+                 success_rate=finals[eta[0]][0], eval_return=0.0, stage_reached_mean=finals[eta[0]][1],
+                 stage_fraction=[1.0, finals[eta[0]][1]],
+                 eval_end={"grasp_thick": finals[eta[0]][2], "grasp_thin": finals[eta[0]][1] - finals[eta[0]][2]})
+            for m, (eta, seed) in enumerate(config.members)]
+    outputs.write_rows(folder / "metrics.jsonl", rows)
+    outputs.write_json(folder / "summary.json", outputs.summarise(config, rows, wall_s=1.0))
+
+
+def test_peg_sweep_picks_by_success_then_thick_grasps_then_handovers(tmp_path):
+    assert peg_budget.best_swept_eta(tmp_path / "missing") is None  # not finished: no pick
+    base = {0.1: (0.0, 0.9, 0.1), 0.3: (0.0, 0.5, 0.4), 0.5: (0.0, 1.0, 0.0), 0.7: (0.0, 0.2, 0.2), 0.9: (0.0, 0.8, 0.4)}
+    _fake_peg_sweep(tmp_path / "a", base)  # nothing inserts: the most thick-section grasps, ties by hand-over
+    assert peg_budget.best_swept_eta(tmp_path / "a") == 0.9
+    _fake_peg_sweep(tmp_path / "b", {**base, 0.1: (0.1, 0.9, 0.1)})  # any insertion wins
+    assert peg_budget.best_swept_eta(tmp_path / "b") == 0.1
+    _fake_peg_sweep(tmp_path / "out" / "sweep", base)
+    assert peg_budget.best_cell(tmp_path / "out") is None  # 0.9: trained anyway as csac_0.9
+    _fake_peg_sweep(tmp_path / "out2" / "sweep", {**base, 0.3: (0.2, 0.5, 0.4)})
+    assert peg_budget.best_cell(tmp_path / "out2") == peg_budget.Cell("csac_0.3", "csac", ((0.3,),))

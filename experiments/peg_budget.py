@@ -1,0 +1,216 @@
+"""Peg in hole at 1 M env steps on the fast peg, on seeds never used on peg (issue 57).
+
+    python experiments/peg_budget.py                          # trains (or resumes) the queue in order, then reports
+    python experiments/peg_budget.py --cells csac_0.9 naive   # some cells, in the queue's order
+    python experiments/peg_budget.py --report-only            # table and curves from the runs as they stand
+
+Settings: the hand on C MuJoCo (`--peg-model hand --peg-physics c`, docs/peg.md#c-physics: the arm's task and
+scripted outcomes, 13x its env steps/s), the paper's epoch (5000 env steps, 1000 updates), [64, 64] networks
+(the paper's are [256, 256]), a replay buffer of 1e6, 1 M env steps (a third of the paper's 3 M), seeds 30-32:
+peg's earlier runs used seeds 0-2 and nothing was chosen on these.
+
+The queue: CSAC at η = 0.9 (the paper's best on peg), Naive, SAC, then a short sweep (`SWEEP`: five ratios,
+two seeds 40-41, 200 k steps), whose best ratio trains as one more CSAC cell on seeds 30-32. The sweep's
+best: the highest mean final success; where no ratio inserts, the highest mean fraction of final evaluations
+handing over on the thick section (`grasp_thick`, the grasp that can insert fully); then the hand-over rate.
+
+Each cell is one vmapped grid in OUT/<cell>/ with a checkpoint every 25 epochs: run the same command again to
+resume a stopped one (finished ones are skipped). Checkpoints hold the buffers (gigabytes) and are deleted when
+a grid finishes; its metrics are compacted (metrics.jsonl.gz) and the folder is what to commit.
+
+The report (OUT/table.md, OUT/curves.png): per cell, final success with mean and IQM and 95 % stratified-bootstrap
+intervals; the final hand-over rate (evaluation episodes that reached stage 2) and where those grasps hold the
+peg (`grasp_thick`, `grasp_thin`: envs_mjx/peg_in_hole.py); P(CSAC > baseline); the three over env steps, each
+method's mean over seeds with a bootstrap band.
+"""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+
+from ccp_jax import stats
+from ccp_jax.config import make_config
+from common import PAPER_TABLE1, RESULTS, cli, improvement, run_grid, with_interval, write_text
+
+SEEDS = (30, 31, 32)
+TOTAL_STEPS = 1_000_000
+CHECKPOINT_EVERY = 25
+SETTINGS = dict(env="peg", peg_model="hand", peg_physics="c", hidden=(64, 64), buffer_size=1_000_000)
+WINDOW = 10  # epochs in a final value (the paper's final success)
+
+
+@dataclasses.dataclass(frozen=True)
+class Cell:
+    name: str
+    algo: str
+    etas: tuple[tuple[float, ...], ...] = ((1.0,),)
+    seeds: tuple[int, ...] = SEEDS
+    total_steps: int = TOTAL_STEPS
+
+    def config(self, smoke: bool = False):
+        """The cell's grid; `smoke`: the "tiny" preset, 2 epochs of 200 steps, 100-step episodes (seconds)."""
+        if smoke:
+            return make_config("tiny", algo=self.algo, etas=self.etas, seeds=self.seeds, total_steps=400,
+                               steps_per_epoch=200, max_episode_steps=100, env="peg", peg_model="hand",
+                               peg_physics="c")
+        return make_config("small", algo=self.algo, etas=self.etas, seeds=self.seeds,
+                           total_steps=self.total_steps, **SETTINGS)
+
+
+SWEEP = Cell("sweep", "csac", tuple((e,) for e in (0.1, 0.3, 0.5, 0.7, 0.9)), seeds=(40, 41), total_steps=200_000)
+QUEUE = (Cell("csac_0.9", "csac", ((0.9,),)), Cell("naive", "naive"), Cell("sac", "sac"), SWEEP)
+
+
+@dataclasses.dataclass
+class Args:
+    cells: Optional[tuple[str, ...]] = None
+    """Train only these cells (csac_0.9, naive, sac, sweep, best: the sweep's best ratio), in the queue's order."""
+    out: Optional[Path] = None
+    """Results folder (default experiments/results/peg_budget)."""
+    report_only: bool = False
+    smoke: bool = False
+    """Seconds per cell (`Cell.config`): checks the script end to end."""
+
+
+# ------------------------------------------------------------------ reading runs
+def curves(folder: Path) -> dict[str, np.ndarray]:
+    """[members, complete epochs] per metric of a run folder (finished or training): env_steps, success,
+    handover (evaluation episodes that reached stage 2), grasp_thick, grasp_thin; plus seed and eta [members]."""
+    from ccp_jax import outputs
+
+    by_member: dict[int, list[dict]] = {}
+    for row in outputs.read_rows(outputs.metrics_file(folder), field="out"):
+        by_member.setdefault(row["member"], []).append(row)
+    epochs = min(len(rows) for rows in by_member.values())
+    rows = [sorted(by_member[m], key=lambda r: r["epoch"])[:epochs] for m in sorted(by_member)]
+    get = lambda f: np.array([[f(r) for r in member] for member in rows], np.float64)
+    return dict(env_steps=get(lambda r: r["env_steps"]), success=get(lambda r: r["success_rate"]),
+                handover=get(lambda r: r["stage_fraction"][1]),
+                grasp_thick=get(lambda r: r["eval_end"].get("grasp_thick", np.nan)),
+                grasp_thin=get(lambda r: r["eval_end"].get("grasp_thin", np.nan)),
+                seed=np.array([member[0]["seed"] for member in rows]),
+                eta=np.array([member[0]["eta"][0] for member in rows]))
+
+
+def final(c: dict, metric: str) -> np.ndarray:
+    return c[metric][:, -WINDOW:].mean(axis=1)
+
+
+def best_swept_eta(folder: Path) -> Optional[float]:
+    """The sweep's best ratio (module doc), None until the sweep has finished."""
+    if not (folder / "summary.json").exists():
+        return None
+    c = curves(folder)
+    score = {eta: tuple(final(c, m)[c["eta"] == eta].mean() for m in ("success", "grasp_thick", "handover"))
+             for eta in sorted(set(c["eta"].tolist()))}
+    return max(score, key=score.get)
+
+
+def best_cell(out: Path) -> Optional[Cell]:
+    eta = best_swept_eta(out / SWEEP.name)
+    if eta is None or eta == 0.9:  # 0.9 trains anyway (csac_0.9)
+        return None
+    return Cell(f"csac_{eta:g}", "csac", ((eta,),))
+
+
+# ------------------------------------------------------------------ the report
+def label(cell_name: str) -> str:
+    return {"naive": "Naive", "sac": "SAC"}.get(cell_name, "CSAC η = " + cell_name.removeprefix("csac_"))
+
+
+def row(name: str, c: dict, paper: Optional[float]) -> str:
+    success, handover = final(c, "success"), final(c, "handover")
+    thick, thin = final(c, "grasp_thick"), final(c, "grasp_thin")
+    per_seed = lambda v: " ".join(f"{x:.2f}" for x in v)
+    return (f"| {label(name)} | {int(c['env_steps'][:, -1].min()):,} | {len(success)} | "
+            f"{with_interval(success, np.mean)} | {with_interval(success, stats.iqm)} | "
+            f"{per_seed(success)} | {per_seed(handover)} | {per_seed(thick)} | {per_seed(thin)} | "
+            f"{'–' if paper is None else f'{paper:.2f}'} |")
+
+
+def figure(found: dict[str, dict], path: Path) -> None:
+    """Success, hand-over rate and thick-section grasps over env steps: mean over seeds, 95 % bootstrap band."""
+    from matplotlib.ticker import FuncFormatter
+
+    from ccp_jax import plot
+
+    fig = plot.new_figure(width=12.0, height=3.6)
+    axes = fig.subplots(1, 3, sharey=True)
+    panels = (("success", "evaluation success"), ("handover", "hand-over rate (reached stage 2)"),
+              ("grasp_thick", "hand-over on the thick section"))
+    for ax, (metric, title) in zip(axes, panels):
+        for i, (name, c) in enumerate(found.items()):
+            values = c[metric]
+            if np.isnan(values).all():
+                continue
+            mean, low, high = stats.curve_band(values)
+            steps = c["env_steps"][0]
+            ax.plot(steps, mean, color=f"C{i}", label=f"{label(name)} ({len(values)} seeds)")
+            ax.fill_between(steps, low, high, color=f"C{i}", alpha=0.2, linewidth=0)
+        ax.xaxis.set_major_formatter(FuncFormatter(plot._steps_label))
+        ax.set(xlabel="env steps", title=title, ylim=(-0.02, 1.02))
+    axes[0].set_ylabel("fraction of evaluation episodes")
+    axes[0].legend(fontsize="small")
+    fig.savefig(path)
+
+
+def report(out: Path) -> str:
+    found = {cell.name: curves(out / cell.name) for cell in QUEUE[:-1] + tuple(filter(None, [best_cell(out)]))
+             if (out / cell.name / "config.json").exists()}
+    found = {name: c for name, c in found.items() if c["success"].shape[1] > 0}
+    if not found:
+        raise SystemExit(f"error: out: no runs of peg_budget.py in {out.resolve()}")
+    paper = lambda name: (PAPER_TABLE1[name]["peg"] if name in ("naive", "sac")
+                          else PAPER_TABLE1["csac"].get(float(name.removeprefix("csac_")), {}).get("peg"))
+    lines = ["# Peg in hole at 1 M env steps (the hand on C MuJoCo)", "",
+             f"Seeds {SEEDS[0]}–{SEEDS[-1]}; [64, 64] networks, buffer 1e6, the paper's epoch. Finals: the mean of "
+             f"the last {WINDOW} evaluations (10 deterministic episodes each). Intervals: 95 % stratified bootstrap "
+             "over seeds. A cell below 1,000,000 env steps is still training. The paper's values are at 3 M steps.",
+             "", "| method | env steps | seeds | success, mean [95 % CI] | IQM [95 % CI] | success per seed | "
+             "hand-over per seed | on the thick section | on the thin section | paper (3 M) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines += [row(name, c, paper(name)) for name, c in found.items()]
+    csac = [n for n in found if n.startswith("csac_")]
+    pairs = [(a, b) for a in csac for b in ("naive", "sac") if b in found]
+    if pairs:
+        lines += ["", "| CSAC | baseline | P(CSAC > baseline), final success |", "|---|---|---|"]
+        lines += [f"| {label(a)} | {label(b)} | {improvement(final(found[a], 'success'), final(found[b], 'success'))} |"
+                  for a, b in pairs]
+    if (out / SWEEP.name / "summary.json").exists():
+        s = curves(out / SWEEP.name)
+        lines += ["", f"Sweep ({SWEEP.total_steps:,} steps, seeds {SWEEP.seeds}): per ratio, final success / hand-over "
+                      "/ thick-section hand-over, mean over its seeds; best: "
+                      f"η = {best_swept_eta(out / SWEEP.name):g}.", "", "| η | success | hand-over | thick |",
+                  "|---|---|---|---|"]
+        for eta in sorted(set(s["eta"].tolist())):
+            pick = s["eta"] == eta
+            lines.append(f"| {eta:g} | " + " | ".join(f"{final(s, m)[pick].mean():.2f}"
+                                                       for m in ("success", "handover", "grasp_thick")) + " |")
+    text = "\n".join(lines) + "\n"
+    write_text(out / "table.md", text)
+    figure(found, out / "curves.png")
+    print(text)
+    return text
+
+
+def main(args: Args) -> None:
+    out = args.out or RESULTS / "peg_budget"
+    if not args.report_only:
+        names = [c.name for c in QUEUE] + ["best"]
+        if args.cells and (unknown := sorted(set(args.cells) - set(names))):
+            raise SystemExit(f"error: cells: unknown {unknown}; choose from {names}")
+        for cell in QUEUE + ("best",):
+            if args.cells and (cell if cell == "best" else cell.name) not in args.cells:
+                continue
+            if cell == "best" and (cell := best_cell(out)) is None:
+                print("best: the sweep has not finished (or picked 0.9, trained as csac_0.9)")
+                continue
+            run_grid(cell.config(args.smoke), out / cell.name, checkpoint_every=CHECKPOINT_EVERY)
+    report(out)
+
+
+if __name__ == "__main__":
+    cli(main, Args, largest_grid=lambda a: None if a.report_only else 10)
