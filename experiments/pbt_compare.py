@@ -113,14 +113,25 @@ def training_fitness(rows: list[dict], window: int) -> float:
     return completed / episodes if episodes else 0.0
 
 
+def carried_lines(rows: dict[int, list[dict]]) -> dict[int, int]:
+    """{member: the starting member whose line it carries at the end}, following each copy (`pbt_parent`) in
+    epoch order; every member its own line where the rows have no PBT fields (a sweep)."""
+    line = {m: m for m in rows}
+    for epoch in range(min(len(r) for r in rows.values())):
+        parents = {m: r[epoch].get("pbt_parent", -1) for m, r in rows.items()}
+        line = {m: line[p] if p >= 0 else line[m] for m, p in parents.items()}  # copies read the state before
+    return line
+
+
 def grid_scores(run: Path, window: int) -> dict:
     """A finished grid: per member (seed, the cooperative agents' starting and final ratios, fitness, final
     success), the member kept by fitness, the median success and the wall time."""
     summary = read_json(run / "summary.json")
     rows = member_rows(run)
+    line = carried_lines(rows)
     members = [dict(seed=m["seed"], eta=m["eta"][:-1], final_eta=m.get("pbt_eta", m["eta"])[:-1],
-                    fitness=training_fitness(rows[m["member"]], window), success=m["final_success"])
-               for m in summary["members"]]
+                    fitness=training_fitness(rows[m["member"]], window), success=m["final_success"],
+                    line=line[m["member"]]) for m in summary["members"]]
     best = max(members, key=lambda m: m["fitness"])  # ties: the first member
     return dict(members=members, best=best, median=float(np.median([m["success"] for m in members])),
                 wall_s=summary.get("wall_s"))
@@ -177,15 +188,18 @@ def report(args: Args, out: Path, domain: str) -> Optional[str]:
                      f"{' '.join(f'{v:.2f}' for v in values)} |")
     lines += ["", f"P(population's kept member > sweep's kept member), paired blocks: "
                   f"{improvement(best_pop, best_sweep)}.", ""]
-    lines += ["| block | seeds | population: kept member's ratios (start → final) | its success | "
-              "all final ratios | wall s, population / sweep |", "|---|---|---|---|---|---|"]
+    lines += ["| block | seeds | population's kept member: final ratios | its success | the line it carries "
+              "(start η, seed) | lines left at the end | all final ratios | wall s, population / sweep |",
+              "|---|---|---|---|---|---|---|---|"]
     for k, (pop, sweep) in enumerate(zip(pops, sweeps)):
-        b = pop["best"]
+        b, start = pop["best"], {i: m for i, m in enumerate(pop["members"])}
+        root = start[b["line"]]
         finals = " ".join("/".join(f"{e:.2f}" for e in m["final_eta"]) for m in pop["members"])
         wall = (f"{pop['wall_s']:.0f} / {sweep['wall_s']:.0f}" if pop["wall_s"] and sweep["wall_s"] else "–")
         lines.append(f"| {k} | {sorted({m['seed'] for m in pop['members']})} | "
-                     f"{'/'.join(eta_label(e) for e in b['eta'])} → {'/'.join(f'{e:.2f}' for e in b['final_eta'])} "
-                     f"| {b['success']:.2f} | {finals} | {wall} |")
+                     f"{'/'.join(f'{e:.2f}' for e in b['final_eta'])} | {b['success']:.2f} | "
+                     f"{'/'.join(eta_label(e) for e in root['eta'])}, {root['seed']} | "
+                     f"{len({m['line'] for m in pop['members']})} | {finals} | {wall} |")
     return "\n".join(lines)
 
 

@@ -548,6 +548,11 @@ def _fake_pbt_compare_block(out: Path, args, block: int, arm: str, success: dict
 
 
 def test_pbt_compare_keeps_the_fittest_member_and_scores_the_sweeps_pick_on_the_other_blocks(tmp_path):
+    parents = lambda *p: [dict(pbt_parent=x) for x in p]
+    # epoch 1: 1 copies 0; epoch 2: 2 copies 1, which by then carries 0's line
+    assert pbt_compare.carried_lines({0: parents(-1, -1), 1: parents(0, -1), 2: parents(-1, 1)}) == {0: 0, 1: 0, 2: 0}
+    # copies at one ranking read the states before it: 2 gets the line 1 had, not the one 1 takes then
+    assert pbt_compare.carried_lines({0: parents(-1), 1: parents(0), 2: parents(1)}) == {0: 0, 1: 0, 2: 1}
     assert pbt_compare.training_fitness([dict(train_episodes=4.0, train_success=0.25,
                                               train_stage_fraction=[1.0, 0.5])], window=1) == pytest.approx(0.375)
     args = pbt_compare.Args(scale="smoke", blocks=2, etas=(0.1, 0.5), seeds_per_block=1, out=tmp_path)
