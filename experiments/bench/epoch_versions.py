@@ -18,7 +18,6 @@ gives each one's median and the median of the paired ratios against today's.
 """
 from __future__ import annotations
 
-import statistics
 import sys
 from pathlib import Path
 from unittest import mock
@@ -33,7 +32,7 @@ from ccp_jax import buffer as replay
 from ccp_jax.networks import MLP, TwinCritic
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from timed import Alternating, TimedGrid, emitters_on_everywhere  # noqa: E402
+from timed import Alternating, TimedGrid, alternate, emitters_on_everywhere, paired_table  # noqa: E402
 from envs_mjx import configure_cpu  # noqa: E402
 
 
@@ -76,17 +75,9 @@ def main(args: Alternating) -> None:
         runs["draws in the loop"] = TimedGrid(config)
         with mock.patch("ccp_jax.learner.TwinCritic", ConcatenatedInput):
             runs["concatenated critic input"] = TimedGrid(config)
-    for r in range(args.reps):
-        for timed in (list(runs.values()) if r % 2 == 0 else list(runs.values())[::-1]):
-            timed.epoch()
-    ours = runs["today's"].times
+    alternate(runs, args.reps)
     print(f"\n{args.rooms}-room CSAC, grid of {args.seeds}, paper epoch, {args.reps} alternating epochs each\n")
-    print("| version | epoch s (median) | min | max | today's / this, median of paired ratios (min – max) |")
-    print("|---|---|---|---|---|")
-    for name, timed in runs.items():
-        ratios = [a / b for a, b in zip(ours, timed.times)]
-        print(f"| {name} | {timed.median:.3f} | {min(timed.times):.2f} | {max(timed.times):.2f} | "
-              f"{statistics.median(ratios):.3f} ({min(ratios):.3f} – {max(ratios):.3f}) |")
+    print(paired_table(runs, "today's", "today's / this", lambda today, this: today / this))
 
 
 if __name__ == "__main__":

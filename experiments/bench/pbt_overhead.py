@@ -14,14 +14,13 @@ the median of the paired ratios against no PBT.
 from __future__ import annotations
 
 import dataclasses
-import statistics
 import sys
 from pathlib import Path
 
 import tyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from timed import Alternating, TimedGrid, emitters_on_everywhere  # noqa: E402
+from timed import Alternating, TimedGrid, alternate, emitters_on_everywhere, paired_table  # noqa: E402
 from envs_mjx import configure_cpu  # noqa: E402
 
 
@@ -43,18 +42,10 @@ def main(args: Args) -> None:
 
     versions = {"no PBT": 0, "ranking every epoch": 1, "PBT on, no ranking": 1000}
     runs = {name: TimedGrid(config(every)) for name, every in versions.items()}
-    for r in range(args.reps):
-        for timed in (list(runs.values()) if r % 2 == 0 else list(runs.values())[::-1]):
-            timed.epoch()
-    base = runs["no PBT"].times
+    alternate(runs, args.reps)
     size = len(args.etas) * args.seeds
     print(f"\n{args.rooms}-room CSAC, grid of {size}, paper epoch, {args.reps} alternating epochs each\n")
-    print("| version | epoch s (median) | min | max | this / no PBT, median of paired ratios (min – max) |")
-    print("|---|---|---|---|---|")
-    for name, timed in runs.items():
-        ratios = [b / a for a, b in zip(base, timed.times)]
-        print(f"| {name} | {timed.median:.2f} | {min(timed.times):.2f} | {max(timed.times):.2f} | "
-              f"{statistics.median(ratios):.3f} ({min(ratios):.3f} – {max(ratios):.3f}) |")
+    print(paired_table(runs, "no PBT", "this / no PBT", lambda base, this: this / base))
 
 
 if __name__ == "__main__":

@@ -12,7 +12,7 @@ import dataclasses
 import os
 import statistics
 import time
-from typing import Sequence
+from typing import Callable, Sequence
 from unittest import mock
 
 import jax
@@ -90,6 +90,27 @@ class TimedEpochs:
     @property
     def median(self) -> float:
         return statistics.median(self.times)
+
+
+def alternate(runs: dict[str, TimedEpochs], reps: int) -> None:
+    """`reps` rounds of one timed epoch of every run, the order reversed every round (a change of load on a shared
+    machine then lands on all of them alike)."""
+    for r in range(reps):
+        for timed in (list(runs.values()) if r % 2 == 0 else list(runs.values())[::-1]):
+            timed.epoch()
+
+
+def paired_table(runs: dict[str, TimedEpochs], base: str, ratio_name: str,
+                 ratio: Callable[[float, float], float]) -> str:
+    """A Markdown table of each run's epoch seconds (median, min, max) and the median (min – max) over rounds of
+    `ratio(base's epoch, this run's epoch)` (`ratio_name` heads that column)."""
+    rows = ["| version | epoch s (median) | min | max | " + ratio_name + ", median of paired ratios (min – max) |",
+            "|---|---|---|---|---|"]
+    for name, timed in runs.items():
+        ratios = [ratio(a, b) for a, b in zip(runs[base].times, timed.times)]
+        rows.append(f"| {name} | {timed.median:.3f} | {min(timed.times):.2f} | {max(timed.times):.2f} | "
+                    f"{statistics.median(ratios):.3f} ({min(ratios):.3f} – {max(ratios):.3f}) |")
+    return "\n".join(rows)
 
 
 class TimedGrid(TimedEpochs):
