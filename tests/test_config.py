@@ -204,11 +204,11 @@ def _tupled(x):
 
 def test_every_committed_config_json_reads_with_its_own_values():
     """Every config.json under experiments/results (each form ever written) migrates to the current form with the
-    values it holds; a setting it lacks takes its default, the maze's kinematics LEGACY_MAZE's robot."""
+    values it holds; a setting it lacks takes its default, a version-1 maze's kinematics LEGACY_MAZE's robot."""
     import json
     from pathlib import Path
 
-    from ccp_jax.config import LEGACY_MAZE, SECTION_OF, Config
+    from ccp_jax.config import LEGACY_MAZE, SECTION_OF, SECTIONS, Config
 
     files = sorted((Path(__file__).parent.parent / "experiments" / "results").glob("**/config.json"))
     assert len(files) > 100
@@ -217,10 +217,14 @@ def test_every_committed_config_json_reads_with_its_own_values():
         written = json.loads(path.read_text())
         config = Config.from_dict(written)
         flat = config.flat()
-        settings = {k: _tupled(v) for k, v in written.items() if k in SECTION_OF}
+        version = written.get("version", 1)  # 1: every setting at the top level; 2 on: nested by section
+        held = written if version == 1 else {k: v for name in SECTIONS for k, v in written.get(name, {}).items()}
+        settings = {k: _tupled(v) for k, v in held.items() if k in SECTION_OF}
+        if version > 1 and "algo" in written:
+            settings["algo"] = written["algo"]
         assert {k: flat[k] for k in settings} == settings, path
         for name in set(SECTION_OF) - set(settings):
-            legacy = config.task.env == "maze" and name in LEGACY_MAZE
+            legacy = version == 1 and config.task.env == "maze" and name in LEGACY_MAZE
             assert flat[name] == (LEGACY_MAZE[name] if legacy else defaults[name]), (path, name)
         for name in ("num_stages", "num_agents", "num_epochs", "grid_size"):
             assert getattr(config, name) == written[name], (path, name)
