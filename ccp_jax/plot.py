@@ -42,20 +42,24 @@ def _task(config: Config) -> str:
 
 
 def _value(row: dict, metric: str) -> Optional[float]:
-    """The row's `metric`; 'name/k' picks agent k of a per-agent list. None when undefined (η* of the last agent)."""
-    name, _, agent = metric.partition("/")
+    """The row's `metric`; 'name/k' picks agent k of a per-agent list, 'name/key' an entry of a dict (eval_end's
+    env diagnostics: eval_end/pocket, eval_end/grasp_thick). None when undefined (η* of the last agent)."""
+    name, _, part = metric.partition("/")
     if name not in row:
         raise ConfigError("metric", f"{name!r} is not in metrics.jsonl; it has {sorted(row)}")
     value = row[name]
     if isinstance(value, list):
-        if not (agent.isdigit() and int(agent) < len(value)):
+        if not (part.isdigit() and int(part) < len(value)):
             raise ConfigError("metric", f"{name!r} is per agent; write {name}/K for agent K "
                                         f"(0..{len(value) - 1}), got {metric!r}")
-        value = value[int(agent)]
-    elif agent:
+        value = value[int(part)]
+    elif isinstance(value, dict):
+        if part not in value:
+            raise ConfigError("metric", f"{name!r} holds {sorted(value)}; write {name}/NAME for one of them, "
+                                        f"got {metric!r}")
+        value = value[part]
+    elif part:
         raise ConfigError("metric", f"{name!r} is one number per epoch, not per agent; write {name}, got {metric!r}")
-    if isinstance(value, dict):  # e.g. eval_end: fractions by where episodes end
-        raise ConfigError("metric", f"{name!r} holds {sorted(value)}; it is not a curve")
     return None if value is None else float(value)
 
 
@@ -144,6 +148,8 @@ def _metric_label(metric: str) -> str:
     if name in ("stage_fraction", "train_stage_fraction") and k:
         episodes = "training episodes" if name.startswith("train") else "evaluations"
         return f"fraction of {episodes} reaching stage {int(k) + 1}"
+    if name == "eval_end" and k:
+        return f"evaluations ending with {k.replace('_', ' ')}"
     return metric.replace("_", " ")
 
 
@@ -334,7 +340,8 @@ def main(argv: Optional[Sequence[str]] = None) -> Path:
         "Curves of a metric vs env steps from run folders: mean ± std over seeds, one line per (algo, eta vector)."))
     parser.add_argument("run_dirs", nargs="+", type=Path, metavar="RUN_DIR")
     parser.add_argument("--metric", default="success_rate",
-                        help="a metrics.jsonl field; NAME/K for agent K of a per-agent field (e.g. q_loss/0)")
+                        help="a metrics.jsonl field; NAME/K for agent K of a per-agent field (e.g. q_loss/0), "
+                             "eval_end/NAME for an env diagnostic at the evaluations' end (eval_end/pocket)")
     parser.add_argument("--out", type=Path, help="PNG to write (default RUN_DIR/success.png for success_rate, "
                                                   "else RUN_DIR/<metric>.png, in the first RUN_DIR)")
     parser.add_argument("--title")
@@ -349,7 +356,8 @@ def main(argv: Optional[Sequence[str]] = None) -> Path:
         parser.exit(2, f"error: labels: {len(args.labels)} given for {len(args.run_dirs)} run folders\n")
     if args.lineage:
         return _main_lineage(parser, args)
-    name = "success" if args.metric == "success_rate" else args.metric.replace("/", "_agent")
+    name = ("success" if args.metric == "success_rate" else args.metric.replace("/", "_")
+            if args.metric.startswith("eval_end/") else args.metric.replace("/", "_agent"))
     out = args.out or args.run_dirs[0] / f"{name}.png"
     try:
         if args.labels:  # folders given the same label pool their seeds

@@ -58,9 +58,18 @@ def test_plot_per_agent_metric_and_bad_metric(run_dir, tmp_path):
         plot.main([str(run_dir), "--metric", "no_such_metric"])
     for metric, message in [("q_loss/5", "'q_loss' is per agent; write q_loss/K for agent K (0..1), got 'q_loss/5'"),
                             ("success_rate/1", "'success_rate' is one number per epoch, not per agent"),
-                            ("eval_end", "'eval_end' holds ['pocket']; it is not a curve")]:
+                            ("eval_end", "'eval_end' holds ['pocket']; write eval_end/NAME for one of them, got 'eval_end'"),
+                            ("eval_end/door", "'eval_end' holds ['pocket']; write eval_end/NAME")]:
         with pytest.raises(ConfigError, match=re.escape(f"metric: {message}")):  # was an IndexError for q_loss/5
             plot.load_curves([run_dir], metric)
+
+
+def test_env_diagnostic_at_the_evaluations_end_is_a_curve(run_dir):
+    rows = sorted(outputs.read_rows(outputs.metrics_file(run_dir)), key=lambda r: (r["member"], r["epoch"]))
+    expected = [[r["eval_end"]["pocket"] for r in rows if r["member"] == m] for m in (0, 1)]
+    series, = plot.load_curves([run_dir], "eval_end/pocket").values()  # one group: one ratio, two seeds
+    assert sorted(values.tolist() for _, values in series) == sorted(expected)
+    assert plot.main([str(run_dir), "--metric", "eval_end/pocket"]) == run_dir / "eval_end_pocket.png"
 
 
 def test_stage_fraction_plot_is_labelled_by_stage_and_spans_fractions(run_dir):
