@@ -13,10 +13,10 @@ things per environment:
   `readout_layout` (`CPhysics.unpack` turns the flat vector into named arrays).
 
 One host call per control step serves the whole batch (``vmap_method="broadcast_all"``: any number of
-nested vmaps arrive as leading axes, flattened here). Each host thread keeps a pool of ``MjData``, one per
-batch row; a row's data is entirely overwritten from the carried state before it is stepped, so which
-data serves which row never shows in the results. Under ``shard_map`` each device calls with its shard,
-possibly from its own thread, hence the per-thread pools.
+nested vmaps arrive as leading axes, flattened here). Each call takes a pool of ``MjData`` (one per batch
+row) from a free list and returns it afterwards; a row's data is entirely overwritten from the carried
+state before it is stepped, so which data serves which row never shows in the results. Under
+``shard_map`` each device calls with its shard, possibly at the same time, hence one pool per call.
 
 The callback is a pure function of its inputs, which is what `jax.pure_callback` asks: XLA may drop a call
 whose results are unused or merge identical calls, and either leaves the results unchanged.
