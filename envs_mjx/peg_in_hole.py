@@ -577,7 +577,7 @@ class PegInHole(Env):
         return render_frames(self, self.exact_qpos(states.pipeline_state))
 
 
-# ----- scripted controllers (tests, benchmarks) ------------------------------------------
+# ----- episode-end diagnostics ---------------------------------------------------------
 def grasp_metrics(stage: jax.Array, offset: jax.Array) -> dict[str, jax.Array]:
     """The episode-end diagnostics of where the hand-over grasp holds the peg (float32[] each, 0 or 1; both 0 before
     a grasp): `grasp_thick`, the pads wholly behind the shoulder (on the thick section: the grasp that can insert
@@ -588,6 +588,7 @@ def grasp_metrics(stage: jax.Array, offset: jax.Array) -> dict[str, jax.Array]:
     return {"grasp_thick": (grasped & thick).astype(jnp.float32), "grasp_thin": (grasped & ~thick).astype(jnp.float32)}
 
 
+# ----- scripted controllers (tests, benchmarks) ------------------------------------------
 def scripted_action(state: State, policy: jax.Array, key: jax.Array) -> jax.Array:
     """A scripted controller's action, float32[2], pure JAX (vmap over ``policy`` to mix them).
 
