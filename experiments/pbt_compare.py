@@ -19,7 +19,8 @@ What the report (`pbt_compare.md` in the results folder) says, over the blocks:
   the fitness of its training episodes over the last `pbt_every` epochs (the
   mean fraction of stages completed, PBT's own fitness, read from the rows);
   the same rule for both grids, and scored by its evaluation success (the
-  paper's final success), which the pick never saw.
+  paper's final success, over the epochs since its last copy if that was
+  within them), which the pick never saw.
 * **median member** of each grid.
 * **the sweep's ratio on fresh seeds**: the ratio with the best mean final
   evaluation success in one block's sweep (a sweep's post-hoc pick), scored
@@ -123,6 +124,17 @@ def carried_lines(rows: dict[int, list[dict]]) -> dict[int, int]:
     return line
 
 
+def final_success(rows: list[dict]) -> float:
+    """The paper's final success (the mean evaluation success of the last `FINAL_WINDOW` epochs) of a member's
+    rows, counting only epochs since its last copy: a slot that copied a donor late is scored on the donor's
+    line alone. (A copy follows the epoch's evaluation, so the epochs after it are the new line's.)"""
+    from ccp_jax.outputs import FINAL_WINDOW
+
+    copied = [i for i, r in enumerate(rows) if r.get("pbt_parent", -1) >= 0]
+    since = rows[copied[-1] + 1:] if copied and copied[-1] + 1 < len(rows) else rows
+    return float(np.mean([r["success_rate"] for r in since[-FINAL_WINDOW:]]))
+
+
 def grid_scores(run: Path, window: int) -> dict:
     """A finished grid: per member (seed, the cooperative agents' starting and final ratios, fitness, final
     success), the member kept by fitness, the median success and the wall time."""
@@ -130,7 +142,7 @@ def grid_scores(run: Path, window: int) -> dict:
     rows = member_rows(run)
     line = carried_lines(rows)
     members = [dict(seed=m["seed"], eta=m["eta"][:-1], final_eta=m.get("pbt_eta", m["eta"])[:-1],
-                    fitness=training_fitness(rows[m["member"]], window), success=m["final_success"],
+                    fitness=training_fitness(rows[m["member"]], window), success=final_success(rows[m["member"]]),
                     line=line[m["member"]]) for m in summary["members"]]
     best = max(members, key=lambda m: m["fitness"])  # ties: the first member
     return dict(members=members, best=best, median=float(np.median([m["success"] for m in members])),

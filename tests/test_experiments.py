@@ -553,6 +553,10 @@ def test_pbt_compare_keeps_the_fittest_member_and_scores_the_sweeps_pick_on_the_
     assert pbt_compare.carried_lines({0: parents(-1, -1), 1: parents(0, -1), 2: parents(-1, 1)}) == {0: 0, 1: 0, 2: 0}
     # copies at one ranking read the states before it: 2 gets the line 1 had, not the one 1 takes then
     assert pbt_compare.carried_lines({0: parents(-1), 1: parents(0), 2: parents(1)}) == {0: 0, 1: 0, 2: 1}
+    # scored on the epochs since its last copy (the donor's line): 0.0 before, 1.0 after the copy at epoch 2
+    rows = [dict(success_rate=0.0, pbt_parent=-1), dict(success_rate=0.0, pbt_parent=3)] + [dict(success_rate=1.0)] * 2
+    assert pbt_compare.final_success(rows) == 1.0
+    assert pbt_compare.final_success([dict(success_rate=v) for v in (0.0, 0.5, 1.0)]) == 0.5  # a sweep: all of them
     assert pbt_compare.training_fitness([dict(train_episodes=4.0, train_success=0.25,
                                               train_stage_fraction=[1.0, 0.5])], window=1) == pytest.approx(0.375)
     args = pbt_compare.Args(scale="smoke", blocks=2, etas=(0.1, 0.5), seeds_per_block=1, out=tmp_path)
