@@ -14,6 +14,7 @@ from ccp_jax.config import ConfigError, make_config
 from ccp_jax.envs import make_env
 from ccp_jax.train import main, run
 from ccp_jax.grid import make_grid_train
+from saved import latest_state  # tests/ is on sys.path (conftest)
 
 # 3 epochs, 2 members; the running normaliser and an "auto" ratio (its outcome rule's, which moves every
 # epoch) put their state into the checkpoint too.
@@ -26,14 +27,6 @@ def _rows(run_dir):
     for r in rows:
         r.pop("epoch_wall_s")
     return rows
-
-
-def _final_state(run_dir):
-    mngr = checkpoint.manager(run_dir)
-    trainer = make_grid_train(CONFIG, make_env(CONFIG))
-    epoch, state = checkpoint.restore(mngr, trainer.abstract_state(CONFIG.grid_arrays()[1]))
-    mngr.close()
-    return epoch, jax.device_get(state)
 
 
 @pytest.fixture(scope="module")
@@ -61,7 +54,7 @@ def test_resume_reproduces_the_uninterrupted_run(uninterrupted, interrupted):
     assert len(_rows(interrupted)) == 6  # epoch 3 rows exist but the state after epoch 3 was lost
     main(["--resume", str(interrupted), "--no-progress"])
     assert _rows(interrupted) == _rows(uninterrupted)
-    (e1, a), (e2, b) = _final_state(uninterrupted), _final_state(interrupted)
+    (e1, a), (e2, b) = latest_state(uninterrupted, CONFIG), latest_state(interrupted, CONFIG)
     assert e1 == e2 == 3
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
         np.testing.assert_array_equal(x, y)
@@ -74,7 +67,7 @@ def test_a_row_cut_by_a_crash_is_trained_again_not_left_out(tmp_path, uninterrup
     (out / "metrics.jsonl").write_text(text[: text.rindex("{") + 40])  # epoch 3's last row cut mid-write
     main(["--resume", str(out), "--no-progress"])
     assert _rows(out) == _rows(uninterrupted)  # from checkpoint 2, epoch 3 trained again
-    assert _final_state(out)[0] == 3
+    assert latest_state(out, CONFIG)[0] == 3
 
 
 def test_a_damaged_row_is_refused_and_nothing_changes(tmp_path, uninterrupted):
@@ -170,7 +163,7 @@ def test_load_policy_acts_like_the_trained_actor(uninterrupted):
     from ccp_jax.collect import policy_mean_and_log_std
     from ccp_jax.networks import deterministic_action
 
-    _, state = _final_state(uninterrupted)
+    _, state = latest_state(uninterrupted, CONFIG)
     policy = load_policy(uninterrupted, member=1)
     obs = np.random.default_rng(0).normal(size=(5, 24)).astype(np.float32)
     stage = np.array([0, 1, 0, 1, 1], np.int32)

@@ -8,14 +8,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from ccp_jax import checkpoint, outputs, plot
+from ccp_jax import outputs, plot
 from ccp_jax.collect import EpisodeStats
 from ccp_jax.config import ConfigError, make_config
-from ccp_jax.envs import make_env
-from ccp_jax.grid import make_grid_train
 from ccp_jax.pbt import PbtMember, exploit_explore, fitness, pbt_step, perturb, select
 from ccp_jax.train import main, run
 from ccp_jax.trainer import TrainState
+from saved import latest_state  # tests/ is on sys.path (conftest)
 
 # 4 members, 3 epochs, a ranking after every epoch: one member replaced each time (⌊0.25 × 4⌋).
 CONFIG = make_config("tiny", etas=((0.1,), (0.9,)), seeds=(0, 1), pbt_every=1, total_steps=600)
@@ -190,14 +189,6 @@ def test_a_fixed_ratio_run_has_no_lineage(tmp_path):
         plot.load_lineage(tmp_path)
 
 
-def _final_state(run_dir):
-    mngr = checkpoint.manager(run_dir)
-    trainer = make_grid_train(CONFIG, make_env(CONFIG))
-    epoch, state = checkpoint.restore(mngr, trainer.abstract_state(CONFIG.grid_arrays()[1]))
-    mngr.close()
-    return epoch, jax.device_get(state)
-
-
 def test_resume_reproduces_the_uninterrupted_pbt_run(tmp_path, cli_run):
     """Killed after epoch 3's rows but before its checkpoint: epoch 3 (with its ranking) is trained again."""
     out = tmp_path / "killed"
@@ -208,7 +199,7 @@ def test_resume_reproduces_the_uninterrupted_pbt_run(tmp_path, cli_run):
     rows = strip(outputs.read_rows(out / "metrics.jsonl"))
     assert rows == strip(outputs.read_rows(cli_run / "metrics.jsonl"))
     assert any(r["pbt_parent"] >= 0 for r in rows if r["epoch"] == 3)  # the epoch trained again copied a member
-    (epoch_a, a), (epoch_b, b) = _final_state(cli_run), _final_state(out)
+    (epoch_a, a), (epoch_b, b) = latest_state(cli_run, CONFIG), latest_state(out, CONFIG)
     assert epoch_a == epoch_b == 3
     assert a.pbt is not None
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
