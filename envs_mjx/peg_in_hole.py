@@ -75,7 +75,8 @@ decreases (a later regrasp is allowed; it does not change the stage).
 Metrics (at an evaluation episode's end, in the rows' ``eval_end``): ``success``, and where
 the grasp that handed over holds the peg (`grasp_metrics`): ``grasp_thick`` (pads wholly
 on the thick section, the grasp that can insert) and ``grasp_thin`` (any other); both 0
-for an episode that never grasped, so their sum is the hand-over rate.
+for an episode that never grasped, so their sum is the hand-over rate. ``hold_thick``: the
+pads hold the thick section at the episode's end (a regrasp after the hand-over shows here).
 
 Reset randomisation (uniform, documented and tested):
   peg gap (tip to block face)  [0.020, 0.050] m  -> peg centre x in [0.470, 0.500]
@@ -449,7 +450,8 @@ class PegInHole(Env):
             "grasp_count": jnp.int32(0),
             "grasp_offset": jnp.float32(0.0),
         }
-        metrics = {"success": jnp.float32(0.0), **grasp_metrics(stage, jnp.float32(0.0))}
+        metrics = {"success": jnp.float32(0.0), **grasp_metrics(stage, jnp.float32(0.0), jnp.bool_(False),
+                                                                 jnp.float32(0.0))}
         obs = self._obs(ro)
         return State(pipeline_state=data, obs=obs, reward=rewards.sum(), done=jnp.float32(0.0),
                      metrics=metrics, info=info)
@@ -488,7 +490,8 @@ class PegInHole(Env):
             "grasp_offset": offset,
         }
         return State(pipeline_state=d, obs=obs, reward=rewards.sum(), done=done,
-                     metrics={"success": success, **grasp_metrics(stage, offset)}, info=info)
+                     metrics={"success": success, **grasp_metrics(stage, offset, ro.touch[0] & ro.touch[1],
+                                                                  grip[0] - c[0])}, info=info)
 
     # ----- the physics: MJX or C, and what the env reads of it -------------------------
     def _physics_step(self, d: Any, ctrl: jax.Array) -> Any:
@@ -578,14 +581,19 @@ class PegInHole(Env):
 
 
 # ----- episode-end diagnostics ---------------------------------------------------------
-def grasp_metrics(stage: jax.Array, offset: jax.Array) -> dict[str, jax.Array]:
-    """The episode-end diagnostics of where the hand-over grasp holds the peg (float32[] each, 0 or 1; both 0 before
-    a grasp): `grasp_thick`, the pads wholly behind the shoulder (on the thick section: the grasp that can insert
-    fully), and `grasp_thin`, any other grasp (the pads reach the thin section and stop at the block face).
-    ``offset``: the grip point's x from the peg's centre at the grasp (`info['grasp_offset']`)."""
+def grasp_metrics(stage: jax.Array, offset: jax.Array, holding: jax.Array, now: jax.Array) -> dict[str, jax.Array]:
+    """The episode-end diagnostics of where the gripper holds the peg (float32[] each, 0 or 1).
+
+    `grasp_thick` / `grasp_thin`: the grasp that handed over (``offset``, the grip point's x from the peg's centre
+    when the grasp was recognised, `info['grasp_offset']`) held the thick section with the pads wholly behind the
+    shoulder (the grasp that can insert fully), or not; both 0 before a grasp. `hold_thick`: both pads touch the
+    peg now (``holding``) with the grip point ``now`` (x from the peg's centre) that far back: a regrasp after
+    the hand-over shows here, not in the first two."""
+    thick = -(CENTRE_TO_SHOULDER + PAD_HALF_X)
     grasped = stage >= 1
-    thick = offset <= -(CENTRE_TO_SHOULDER + PAD_HALF_X)
-    return {"grasp_thick": (grasped & thick).astype(jnp.float32), "grasp_thin": (grasped & ~thick).astype(jnp.float32)}
+    return {"grasp_thick": (grasped & (offset <= thick)).astype(jnp.float32),
+            "grasp_thin": (grasped & (offset > thick)).astype(jnp.float32),
+            "hold_thick": (holding & (now <= thick)).astype(jnp.float32)}
 
 
 # ----- scripted controllers (tests, benchmarks) ------------------------------------------

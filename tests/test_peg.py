@@ -52,7 +52,7 @@ def run(env):
                        done=s2.done, truncation=s2.info["truncation"], success=s2.metrics["success"],
                        steps=s2.info["steps"], depth=env.peg_depth(d), qpos=d.qpos, ctrl=d.ctrl,
                        grip=env.readout(d).grip_pos, grasp_thick=s2.metrics["grasp_thick"],
-                       grasp_thin=s2.metrics["grasp_thin"])
+                       grasp_thin=s2.metrics["grasp_thin"], hold_thick=s2.metrics["hold_thick"])
             return s2, out
 
         _, traj = jax.lax.scan(body, s0, jax.random.split(k_act, T))
@@ -84,6 +84,7 @@ def test_thick_section_grasp_reaches_success(run):
         # the episode-end diagnostic names the grasp: on the thick section, from the grasp on
         assert np.all(tr["grasp_thick"][i, :t_grasp] == 0.0) and np.all(tr["grasp_thick"][i, t_grasp:] == 1.0)
         assert not tr["grasp_thin"][i].any()
+        assert tr["hold_thick"][i, t_grasp:t_succ + 1].any()  # holding the thick section on the way in
 
 
 def test_centre_grasp_stalls_short_of_full_insertion(run):
@@ -99,6 +100,7 @@ def test_centre_grasp_stalls_short_of_full_insertion(run):
         # Timed out, not terminated.
         assert tr["done"][i, -1] == 1.0 and tr["truncation"][i, -1] == 1.0
         assert tr["grasp_thin"][i, -1] == 1.0 and tr["grasp_thick"][i, -1] == 0.0  # a thin-section grasp
+        assert tr["hold_thick"][i, -1] == 0.0  # held at the centre, on the thin section, to the end
 
 
 def test_grasp_detection_is_a_closed_grasp(run, env):
@@ -168,6 +170,7 @@ def test_release_after_grasp_keeps_stage(run, env):
         assert tr["grip"][i, -1, 0] > P.HOLE_FACE_X - P.PAD_HALF_X - 0.003
         peg = tr["obs"][i, :, OBS_SLICES["peg_pos"]]
         assert abs(peg[-1, 2] - P.AXIS_Z) < 0.003  # on the table
+        assert tr["hold_thick"][i, -1] == 0.0 and tr["grasp_thick"][i, -1] == 1.0  # let go; the hand-over stays
         if np.linalg.norm(peg[-1] - peg[t]) >= 0.005:
             moved.append(i)
     assert len(moved) <= (2 if env.physics == "c" else 0), moved
