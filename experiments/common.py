@@ -197,18 +197,28 @@ def merged_summary(folders: Sequence[Path], in_progress: bool = False) -> Option
     return {"members": members}
 
 
+def rows_by_member(folder: Path, field: str = "run_dir", complete_epochs: bool = False) -> dict[int, list[dict]]:
+    """{member: its metrics rows in epoch order} of a run folder (finished or training), members in order; with
+    `complete_epochs`, every member cut to the epochs all of them have logged. `field` names the argument that gave
+    the folder in a read error (`outputs.read_rows`)."""
+    from ccp_jax import outputs
+
+    by_member: dict[int, list[dict]] = {}
+    for row in outputs.read_rows(outputs.metrics_file(folder), field=field):
+        by_member.setdefault(row["member"], []).append(row)
+    epochs = min((len(rows) for rows in by_member.values()), default=0) if complete_epochs else None
+    return {m: sorted(by_member[m], key=lambda r: r["epoch"])[:epochs] for m in sorted(by_member)}
+
+
 def final_ends(folder: Path) -> dict[int, tuple[float, Optional[float]]]:
     """{member: (stage, pocket)} of a run, means over the last 10 evaluations (the final success's window): the
     1-based stage the evaluation episodes end in (N: the last, the goal's), and the fraction that end in a maze's
     dead-end pocket (None for runs without that metric). Where a member that never succeeds gets stuck."""
     from ccp_jax import outputs
 
-    by_member: dict[int, list[dict]] = {}
-    for row in outputs.read_rows(outputs.metrics_file(folder)):
-        by_member.setdefault(row["member"], []).append(row)
     ends = {}
-    for member, rows in by_member.items():
-        last = sorted(rows, key=lambda r: r["epoch"])[-outputs.FINAL_WINDOW:]
+    for member, rows in rows_by_member(folder).items():
+        last = rows[-outputs.FINAL_WINDOW:]
         pockets = [r["eval_end"]["pocket"] for r in last if "pocket" in r.get("eval_end", {})]
         ends[member] = (1.0 + float(np.mean([r["stage_reached_mean"] for r in last])),
                         float(np.mean(pockets)) if len(pockets) == len(last) else None)

@@ -23,7 +23,7 @@ from typing import Optional
 import numpy as np
 
 from ccp_jax import outputs, stats
-from common import ALGO_NAMES, PAPER_TABLE1, RESULTS, improvement, with_interval, write_text
+from common import ALGO_NAMES, PAPER_TABLE1, RESULTS, improvement, rows_by_member, with_interval, write_text
 from paper_budget import QUEUE, SEEDS, Cell
 
 # Epochs in the final-success mean (the paper's, as in summary.json) and in the running success.
@@ -73,12 +73,7 @@ def load_cell(out: Path, cell: Cell) -> list[Member]:
         if (folder.name != cell.name and not folder.name.startswith(f"{cell.name}_seeds")
                 or not outputs.metrics_file(folder).exists()):
             continue
-        by_member: dict[int, list[dict]] = {}
-        for row in outputs.read_rows(outputs.metrics_file(folder), field="out"):
-            by_member.setdefault(row["member"], []).append(row)
-        complete = min((len(rows) for rows in by_member.values()), default=0)
-        for rows in by_member.values():
-            rows = sorted(rows, key=lambda r: r["epoch"])[:complete]
+        for rows in rows_by_member(folder, field="out", complete_epochs=True).values():
             pockets = [r.get("eval_end", {}).get("pocket") for r in rows]
             members[rows[0]["seed"]] = Member(
                 seed=rows[0]["seed"], steps=np.array([r["env_steps"] for r in rows]),

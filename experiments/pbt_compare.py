@@ -42,8 +42,8 @@ from typing import Optional
 import numpy as np
 
 from ccp_jax.eta import AUTO, ETA_AUTO_RULES
-from common import (DOMAINS, SCALES, ScaleName, cli, eta_label, improvement, mean_and_iqm, read_json, results_folder,
-                    run_grid, write_text)
+from common import (DOMAINS, SCALES, ScaleName, best_swept_eta, cli, eta_label, improvement, mean_and_iqm, read_json,
+                    results_folder, rows_by_member, run_grid, write_text)
 
 FIRST_SEED = 40  # seeds 40+: never used for a choice (Table I's sweeps use 0-11, the paper budget 30-34)
 AUTO_FIRST_SEED = 100  # the auto rule's grids: P seeds per block from here
@@ -93,15 +93,6 @@ def folder(out: Path, domain: str, block: int, arm: str) -> Path:
 
 
 # ------------------------------------------------------------------ reading a finished grid
-def member_rows(run: Path) -> dict[int, list[dict]]:
-    from ccp_jax import outputs
-
-    rows: dict[int, list[dict]] = {}
-    for r in outputs.read_rows(outputs.metrics_file(run)):
-        rows.setdefault(r["member"], []).append(r)
-    return {m: sorted(rs, key=lambda r: r["epoch"]) for m, rs in rows.items()}
-
-
 def training_fitness(rows: list[dict], window: int) -> float:
     """PBT's fitness (`ccp_jax.pbt.fitness`) from a member's last `window` rows: of the training episodes that
     ended, the mean fraction of the N stages completed. Entry n of a row's `train_stage_fraction` is the fraction
@@ -137,16 +128,17 @@ def final_success(rows: list[dict]) -> float:
 
 def grid_scores(run: Path, window: int) -> dict:
     """A finished grid: per member (seed, the cooperative agents' starting and final ratios, fitness, final
-    success), the member kept by fitness, the median success and the wall time."""
+    success), the member kept by fitness, the median success, the wall time, and the starting ratio a sweep's
+    user would pick afterwards (`common.best_swept_eta`: the best mean final success, ties by return)."""
     summary = read_json(run / "summary.json")
-    rows = member_rows(run)
+    rows = rows_by_member(run)
     line = carried_lines(rows)
     members = [dict(seed=m["seed"], eta=m["eta"][:-1], final_eta=m.get("pbt_eta", m["eta"])[:-1],
                     fitness=training_fitness(rows[m["member"]], window), success=final_success(rows[m["member"]]),
                     line=line[m["member"]]) for m in summary["members"]]
     best = max(members, key=lambda m: m["fitness"])  # ties: the first member
     return dict(members=members, best=best, median=float(np.median([m["success"] for m in members])),
-                wall_s=summary.get("wall_s"))
+                wall_s=summary.get("wall_s"), picked_eta=best_swept_eta(summary)[0])
 
 
 def by_eta(grid: dict) -> dict[float, list[float]]:
@@ -157,11 +149,10 @@ def by_eta(grid: dict) -> dict[float, list[float]]:
 
 
 def sweep_pick_on_fresh_seeds(sweeps: list[dict]) -> list[tuple[float, float]]:
-    """Per block: (the ratio with the best mean success there, its mean success in the other blocks)."""
+    """Per block: (the ratio picked there, `picked_eta`, and its mean success in the other blocks)."""
     picks = []
     for k, grid in enumerate(sweeps):
-        means = {eta: np.mean(v) for eta, v in sorted(by_eta(grid).items())}
-        pick = max(means, key=means.get)
+        pick = grid["picked_eta"]
         others = [s for j, g in enumerate(sweeps) if j != k for s in by_eta(g)[pick]]
         picks.append((pick, float(np.mean(others))))
     return picks

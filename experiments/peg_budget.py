@@ -31,15 +31,15 @@ from typing import Optional
 
 import numpy as np
 
-from ccp_jax import stats
+from ccp_jax import outputs, stats
 from ccp_jax.config import make_config
-from common import PAPER_TABLE1, RESULTS, cli, improvement, run_grid, with_interval, write_text
+from common import PAPER_TABLE1, RESULTS, cli, improvement, rows_by_member, run_grid, with_interval, write_text
 
 SEEDS = (30, 31, 32)
 TOTAL_STEPS = 1_000_000
 CHECKPOINT_EVERY = 25
 SETTINGS = dict(env="peg", peg_model="hand", peg_physics="c", hidden=(64, 64), buffer_size=1_000_000)
-WINDOW = 10  # epochs in a final value (the paper's final success)
+WINDOW = outputs.FINAL_WINDOW  # epochs in a final value (the paper's final success)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -79,13 +79,7 @@ class Args:
 def curves(folder: Path) -> dict[str, np.ndarray]:
     """[members, complete epochs] per metric of a run folder (finished or training): env_steps, success,
     handover (evaluation episodes that reached stage 2), grasp_thick, grasp_thin; plus seed and eta [members]."""
-    from ccp_jax import outputs
-
-    by_member: dict[int, list[dict]] = {}
-    for row in outputs.read_rows(outputs.metrics_file(folder), field="out"):
-        by_member.setdefault(row["member"], []).append(row)
-    epochs = min(len(rows) for rows in by_member.values())
-    rows = [sorted(by_member[m], key=lambda r: r["epoch"])[:epochs] for m in sorted(by_member)]
+    rows = list(rows_by_member(folder, field="out", complete_epochs=True).values())
     get = lambda f: np.array([[f(r) for r in member] for member in rows], np.float64)
     return dict(env_steps=get(lambda r: r["env_steps"]), success=get(lambda r: r["success_rate"]),
                 handover=get(lambda r: r["stage_fraction"][1]),
@@ -160,7 +154,7 @@ def figure(found: dict[str, dict], path: Path) -> None:
 def report(out: Path) -> str:
     found = {cell.name: curves(out / cell.name) for cell in QUEUE[:-1] + tuple(filter(None, [best_cell(out)]))
              if (out / cell.name / "config.json").exists()}
-    found = {name: c for name, c in found.items() if c["success"].shape[1] > 0}
+    found = {name: c for name, c in found.items() if c["success"].size > 0}
     if not found:
         raise SystemExit(f"error: out: no runs of peg_budget.py in {out.resolve()}")
     paper = lambda name: (PAPER_TABLE1[name]["peg"] if name in ("naive", "sac")
