@@ -18,37 +18,26 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from brax.envs.base import Env, State
+from brax.envs.base import State, Wrapper
 
 from envs_mjx.peg_in_hole import PegInHole, scripted_action
 
 GRASP_STEPS = 120  # the scripted thick grasp takes 40-80 control steps from any reset
 
 
-class InsertionOnly(Env):
+class InsertionOnly(Wrapper):
     """The peg task, each episode starting in its insertion stage from a scripted thick-section grasp.
 
-    The state's ``pipeline_state`` is the inner peg env's whole `State`; observations, actions, stages and
+    The state's ``pipeline_state`` is the inner peg env's (``env``) whole `State`; observations, actions, stages and
     rewards are the peg env's (float32[41], float32[2], 2 stages); ``info["steps"]`` counts from the grasp.
     """
 
     num_stages = 2
 
     def __init__(self, episode_length: int = 300, model: str = "hand", physics: str = "c"):
+        # brax's Wrapper passes on the sizes and the backend; `env` is the inner peg env
+        super().__init__(PegInHole(episode_length=episode_length + GRASP_STEPS, model=model, physics=physics))
         self.episode_length = int(episode_length)
-        self.inner = PegInHole(episode_length=self.episode_length + GRASP_STEPS, model=model, physics=physics)
-
-    @property
-    def observation_size(self) -> int:
-        return self.inner.observation_size
-
-    @property
-    def action_size(self) -> int:
-        return self.inner.action_size
-
-    @property
-    def backend(self) -> str:
-        return self.inner.backend
 
     def reset(self, rng: jax.Array) -> State:
         k_reset, k_script = jax.random.split(rng)
@@ -59,14 +48,14 @@ class InsertionOnly(Env):
 
         def scripted(carry):
             s, t = carry
-            return self.inner.step(s, scripted_action(s, jnp.int32(0), k_script)), t + 1
+            return self.env.step(s, scripted_action(s, jnp.int32(0), k_script)), t + 1
 
-        inner, _ = jax.lax.while_loop(grasping, scripted, (self.inner.reset(k_reset), jnp.int32(0)))
+        inner, _ = jax.lax.while_loop(grasping, scripted, (self.env.reset(k_reset), jnp.int32(0)))
         zero = jnp.float32(0.0)
         return self._wrap(inner, jnp.int32(0), zero, zero)
 
     def step(self, state: State, action: jax.Array) -> State:
-        inner = self.inner.step(state.pipeline_state, action)
+        inner = self.env.step(state.pipeline_state, action)
         steps = state.info["steps"] + 1
         success = inner.metrics["success"]
         timeout = jnp.maximum((steps >= self.episode_length).astype(jnp.float32), inner.info["truncation"])
@@ -81,7 +70,7 @@ class InsertionOnly(Env):
 
     def render_frames(self, states: State):
         """The peg env's frames of the inner states (the contract's optional render hook)."""
-        return self.inner.render_frames(states.pipeline_state)
+        return self.env.render_frames(states.pipeline_state)
 
 
 def make(episode_length: int = 300) -> InsertionOnly:
