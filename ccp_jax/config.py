@@ -44,6 +44,13 @@ PEG_PHYSICS = ("mjx", "c")  # envs_mjx.peg_in_hole.PHYSICS
 LEGACY_MAZE = {"maze_reverse": True, "maze_slide": False}
 # The form of config.json `to_dict` writes. 1: every setting at the top level (no "version" key).
 VERSION = 2
+# Settings that training no longer offers (docs/design.md#retired-settings): a removed setting -> (its section,
+# its old default); a remaining setting -> its retired values. A config.json holding a removed setting at its old
+# default reads as if it did not; one holding a retired value reads into `Config.retired`, so its run's results
+# load, plot and compare, while `Config.check_trainable` refuses to train or resume it.
+RETIRED_SETTINGS: dict[str, tuple[str, Any]] = {"eta_auto_up_rate": ("ablations", None),
+                                                "eta_auto_floor_step": ("ablations", 0.0)}
+RETIRED_VALUES: dict[str, tuple[Any, ...]] = {"eta_auto_rule": ("outcomes",)}
 
 
 class ConfigError(ValueError):
@@ -229,14 +236,14 @@ class Ccp:
     """Rate of every critic's running (EMA) min and max: the ranges the ranges rule of --eta auto reads, and the
     bounds of --normaliser ema."""
     eta_auto_rule: EtaAutoRule = "ranges"
-    """What --eta auto follows: ranges (the appendix's η* of the critics' running ranges); outcomes (each epoch
-    η_n moves up with the training episodes failing in stage n, down with those failing in stage n + 1);
-    gated (outcomes with only the upward term until stage n + 1 has seen a success, only the downward one
-    after); trusted (gated, but both terms before that success, η at least mid-range). docs/design.md#the-method."""
+    """What --eta auto follows: ranges (the appendix's η* of the critics' running ranges); or, once per epoch,
+    from where the training episodes failed: gated (η_n moves up with those failing in stage n until stage n + 1
+    has seen a success, then down with those failing in stage n + 1) or trusted (both moves before that success,
+    η at least mid-range; only the downward one after). docs/design.md#the-method."""
     eta_auto_range: tuple[float, float] = (0.05, 0.95)
     """--eta auto: the interval the ratio stays in."""
     eta_auto_rate: float = 0.05
-    """--eta auto under the outcomes, gated and trusted rules: η's largest move per epoch."""
+    """--eta auto under the gated and trusted rules: η's largest move per epoch."""
     pbt_every: int = 0
     """Population-based training of the ratios (docs/pbt.md): every K epochs the grid's members are ranked by the
     fitness of their training episodes since the last ranking, and each of the bottom pbt_fraction copies the
@@ -380,11 +387,6 @@ class Ablations:
     eta_auto_next_weight: float = 1.0
     """--eta auto under the ranges rule: κ in η* = Ran(Q_n) / (Ran(Q_n) + κ Ran(Q_{n+1})), the ratio whose
     objective is Q_n + κ Q_{n+1}; 1 is the appendix's sum."""
-    eta_auto_up_rate: float | None = None
-    """The outcome rules' rate of the own-failure (upward) term; None: eta_auto_rate; 0: η only falls."""
-    eta_auto_floor_step: float = 0.0
-    """The outcome rules' lower bound for agent n: the low end of eta_auto_range + n × this (at most the range's
-    middle); 0: the low end for all."""
     train_cycles_per_epoch: int = 1
     """Split each epoch into K cycles of (collect steps/K, then updates/K): RLkit's num_train_loops_per_epoch.
     1 is the paper's order; steps_per_epoch/num_envs interleaves like CleanRL."""
@@ -402,12 +404,6 @@ class Ablations:
             raise ConfigError("norm_floor", f"must be positive, got {self.norm_floor}")
         if not (math.isfinite(self.eta_auto_next_weight) and self.eta_auto_next_weight > 0):
             raise ConfigError("eta_auto_next_weight", f"must be a positive finite number, got {self.eta_auto_next_weight}")
-        if self.eta_auto_up_rate is not None and not (math.isfinite(self.eta_auto_up_rate)
-                                                      and 0.0 <= self.eta_auto_up_rate <= 1.0):
-            raise ConfigError("eta_auto_up_rate", f"must be in [0, 1] (or None: eta_auto_rate), "
-                                                  f"got {self.eta_auto_up_rate}")
-        if not (math.isfinite(self.eta_auto_floor_step) and 0.0 <= self.eta_auto_floor_step <= 1.0):
-            raise ConfigError("eta_auto_floor_step", f"must be in [0, 1], got {self.eta_auto_floor_step}")
         _positive_ints(self, ("train_cycles_per_epoch",))
 
 
@@ -433,12 +429,27 @@ class Config:
     ccp: Ccp = Ccp()
     tp: Tp = Tp()
     ablations: Ablations = Ablations()
+    retired: tuple[tuple[str, Any], ...] = ()
+    """(name, value) of each retired setting (`RETIRED_SETTINGS`, `RETIRED_VALUES`) that the config.json this was
+    read from holds, in name order; the section keeps the default where the setting remains. Empty for every
+    config that can train (`check_trainable`)."""
 
     def __post_init__(self) -> None:
         for name, cls in SECTIONS.items():
             if not isinstance(getattr(self, name), cls):
                 raise ConfigError(name, f"must be a {cls.__name__} section, got {getattr(self, name)!r}")
+        for entry in self.retired:
+            if not (isinstance(entry, tuple) and len(entry) == 2
+                    and (entry[0] in RETIRED_SETTINGS or entry[1] in RETIRED_VALUES.get(entry[0], ()))):
+                raise ConfigError("retired", f"must hold (name, value) pairs of retired settings, got {entry!r}")
         self._check()
+
+    def check_trainable(self) -> None:
+        """Refuses, naming the setting, a config read from a run that used a retired setting."""
+        if self.retired:
+            name, value = self.retired[0]
+            raise ConfigError(name, f"{value!r} is retired (docs/design.md#retired-settings): the run's results "
+                                    "still read, plot and compare, but it cannot train or resume")
 
     # ------------------------------------------------------------------ derived
     @property
@@ -518,7 +529,7 @@ class Config:
         top: dict[str, Any] = {}
         sections: dict[str, dict[str, Any]] = {}
         for name, value in changes.items():
-            if name in SECTIONS or name == "algo":
+            if name in SECTIONS or name in ("algo", "retired"):
                 top[name] = value
             elif name in SECTION_OF:
                 sections.setdefault(SECTION_OF[name], {})[name] = value
@@ -535,13 +546,15 @@ class Config:
 
     def differing(self, other: "Config", ignore: Sequence[str] = ()) -> list[str]:
         """Flat names of the settings (in declaration order) whose values differ from `other`'s, except `ignore`."""
-        return [name for name in SECTION_OF if name not in ignore and self._get(name) != other._get(name)]
+        names = [name for name in SECTION_OF if name not in ignore and self._get(name) != other._get(name)]
+        return names + (["retired"] if "retired" not in ignore and self.retired != other.retired else [])
 
     # ------------------------------------------------------------- config.json
     def to_dict(self) -> dict:
         """The nested form config.json holds: `version`, `algo`, one object per section, then derived values."""
         return {"version": VERSION, "algo": self.algo,
                 **{name: dataclasses.asdict(getattr(self, name)) for name in SECTIONS},
+                **({"retired": dict(self.retired)} if self.retired else {}),
                 "num_stages": self.num_stages, "num_agents": self.num_agents, "num_epochs": self.num_epochs,
                 "grid_size": self.grid_size}
 
@@ -553,7 +566,9 @@ class Config:
         def tupled(x):
             return tuple(tupled(v) for v in x) if isinstance(x, list) else x
 
-        fields = {"algo": d["algo"]} if "algo" in d else {}
+        fields: dict[str, Any] = {"algo": d["algo"]} if "algo" in d else {}
+        if d.get("retired"):
+            fields["retired"] = tuple(sorted((name, tupled(value)) for name, value in d["retired"].items()))
         for name, section in SECTIONS.items():
             values = d.get(name, {})
             if not isinstance(values, Mapping):
@@ -579,7 +594,6 @@ class Config:
         self._check_env_options()
         self._check_cycles()
         self._check_ratios()
-        self._check_auto()
         self._check_pbt()
         if self.algo == "tp":
             self.tp.check()
@@ -624,13 +638,6 @@ class Config:
         if len(set(vectors)) != len(vectors):  # with the same seeds, a repeated ratio trains identical runs
             raise ConfigError("eta", f"ratios must be distinct, got {[list(e) for e in etas]}")
 
-    def _check_auto(self) -> None:
-        from ccp_jax.eta import OUTCOME_RULES  # local: eta.py imports this module
-
-        if self.ablations.eta_auto_floor_step and self.ccp.eta_auto_rule not in OUTCOME_RULES:
-            raise ConfigError("eta_auto_floor_step", f"bounds the outcome rules {OUTCOME_RULES}; the rule "
-                              f"{self.ccp.eta_auto_rule!r} clips η* to eta_auto_range instead")
-
     def _check_pbt(self) -> None:
         """PBT moves the numeric ratios of a cooperative population of at least two members."""
         from ccp_jax.eta import AUTO  # local: eta.py imports this module
@@ -663,7 +670,8 @@ def migrate(d: Mapping[str, Any]) -> dict:
 
     Version 1 (no "version" key) holds every setting at the top level, with the settings of its time: a missing
     one takes its default, except a maze run's kinematics, which predate maze_reverse / maze_slide and were
-    `LEGACY_MAZE`'s robot. Derived values (num_stages, ...) and unknown top-level keys are dropped.
+    `LEGACY_MAZE`'s robot. Derived values (num_stages, ...) and unknown top-level keys are dropped. Retired
+    settings leave their sections (`_retire`).
     """
     version = d.get("version", 1)
     if not isinstance(version, int) or not 1 <= version <= VERSION:
@@ -671,16 +679,32 @@ def migrate(d: Mapping[str, Any]) -> dict:
         raise ConfigError("version", f"config.json version {version!r} is not one this ccp-jax reads "
                                      f"(1..{VERSION}){newer}")
     if version == 1:
-        flat = {k: v for k, v in d.items() if k in SECTION_OF}
+        flat = {k: v for k, v in d.items() if k in SECTION_OF or k in RETIRED_SETTINGS}
         if flat.get("env", Task.env) == "maze":
             flat = {**LEGACY_MAZE, **flat}
         nested: dict[str, Any] = {"version": VERSION}
         if "algo" in flat:
             nested["algo"] = flat.pop("algo")
         for name, value in flat.items():
-            nested.setdefault(SECTION_OF[name], {})[name] = value
-        return nested
-    return {k: v for k, v in d.items() if k == "version" or k == "algo" or k in SECTIONS}
+            nested.setdefault(RETIRED_SETTINGS[name][0] if name in RETIRED_SETTINGS else SECTION_OF[name], {})[name] = value
+        return _retire(nested)
+    return _retire({k: v for k, v in d.items() if k in ("version", "algo", "retired") or k in SECTIONS})
+
+
+def _retire(nested: dict[str, Any]) -> dict[str, Any]:
+    """`nested` with the retired settings out of its sections: dropped at their old default, else under "retired"."""
+    retired = dict(nested.get("retired") or {})
+    sections = {name: dict(values) if isinstance(values, Mapping) else values
+                for name, values in nested.items() if name in SECTIONS}
+    for name, (section, old_default) in RETIRED_SETTINGS.items():
+        values = sections.get(section)
+        if isinstance(values, dict) and name in values and (value := values.pop(name)) != old_default:
+            retired[name] = value
+    for name, values in RETIRED_VALUES.items():
+        section = sections.get(SECTION_OF[name])
+        if isinstance(section, dict) and section.get(name) in values:
+            retired[name] = section.pop(name)
+    return {**nested, **sections, **({"retired": retired} if retired else {})}
 
 
 PRESETS: dict[str, dict] = {

@@ -6,8 +6,8 @@ Agent n's actor maximises C_n = η_n Q̂_n + (1 − η_n) Q̂_{n+1} (Eq. (3) of 
   (the paper's independent ratios); the last agent has no next critic and uses η = 1 (`per_agent`);
 - "auto" (`AUTO`), estimated while training by one of the rules of `EtaAutoRule`:
   "ranges": η* of the critics' running ranges (Eq. (25), `eta_star`), clipped to `eta_auto_range`, inside
-  every update (`actor_eta`); "outcomes", "gated" and "trusted": once per epoch, from where the training
-  episodes failed (`outcome_eta`), starting at the middle of `eta_auto_range` (`initial_auto`).
+  every update (`actor_eta`); "gated" and "trusted": once per epoch, from where the training episodes
+  failed (`outcome_eta`), starting at the middle of `eta_auto_range` (`initial_auto`).
 
 The grid carries a run's ratios as float32[G, N] with "auto" as NaN (`grid_etas`); the epoch replaces the
 NaNs of the outcome rules by their current ratios (`epoch_eta`), the update those of "ranges" (`actor_eta`).
@@ -30,10 +30,9 @@ if TYPE_CHECKING:
     from ccp_jax.config import Config
 
 AUTO = "auto"  # a ratio estimated during training, see `EtaAutoRule`
-EtaAutoRule = Literal["ranges", "outcomes", "gated", "trusted"]
-ETA_AUTO_RULES = ("ranges", "outcomes", "gated", "trusted")
-OUTCOME_RULES = ("outcomes", "gated", "trusted")  # the rules `outcome_eta` moves, once per epoch
-GATED_RULES = ("gated", "trusted")  # those that watch `successor_succeeded`
+EtaAutoRule = Literal["ranges", "gated", "trusted"]
+ETA_AUTO_RULES = ("ranges", "gated", "trusted")
+OUTCOME_RULES = ("gated", "trusted")  # the rules `outcome_eta` moves, once per epoch from where episodes failed
 Ratio = float | str  # a number in [0, 1] or AUTO
 
 
@@ -130,7 +129,7 @@ def next_auto(eta_auto: jax.Array, gate: jax.Array, stages: jax.Array, successes
     if config.ccp.eta_auto_rule not in OUTCOME_RULES:
         return eta_auto
     return outcome_eta(eta_auto, stages, successes, config.ccp.eta_auto_rate, config.ccp.eta_auto_range,
-                       config.ablations.eta_auto_up_rate, config.ccp.eta_auto_rule, gate, config.ablations.eta_auto_floor_step)
+                       config.ccp.eta_auto_rule, gate)
 
 
 def _reached(stages: jax.Array, successes: jax.Array) -> jax.Array:
@@ -150,45 +149,37 @@ def successor_succeeded(stages: jax.Array, successes: jax.Array) -> jax.Array:
 
 
 def outcome_eta(eta: jax.Array, stages: jax.Array, successes: jax.Array, rate: float,
-                bounds: tuple[float, float], up_rate: float | None = None,
-                rule: EtaAutoRule = "outcomes", gate: jax.Array | None = None, floor_step: float = 0.0) -> jax.Array:
-    """One epoch's move of `--eta auto`'s outcome rules (`rule`): eta float32[N] -> float32[N].
+                bounds: tuple[float, float], rule: EtaAutoRule, gate: jax.Array) -> jax.Array:
+    """One epoch's move of `--eta auto`'s outcome rule `rule` ("gated" or "trusted"): eta float32[N] -> float32[N].
 
     stages float32[N]: how many of the epoch's ended training episodes reached each stage; successes
-    float32[]: how many succeeded. Of the episodes that entered stage n, those that failed in it push η_n
-    up by `up_rate` (default `rate`) each (the agent's own subtask is the bottleneck: weigh its own
-    critic more) and those that failed in stage n + 1 push it down by `rate` (it hands over where its
-    successor fails: weigh the next critic more), as fractions of the episodes that entered stage n;
-    clipped to `bounds`. An agent whose stage no episode entered keeps its η. (The last agent's entry
-    moves too but is never used.) With `floor_step`, agent n's lower bound is bounds[0] + n × floor_step,
-    never above the middle of `bounds`: a ramp of floors along the chain (the first agent's is bounds[0]).
+    float32[]: how many succeeded; gate bool[N]: `successor_succeeded`, accumulated over epochs. Of the
+    episodes that entered stage n, those that failed in it push η_n up by `rate` each (the agent's own
+    subtask is the bottleneck: weigh its own critic more) and those that failed in stage n + 1 push it down
+    by `rate` (it hands over where its successor fails: weigh the next critic more), as fractions of the
+    episodes that entered stage n; clipped to `bounds`. An agent whose stage no episode entered keeps its η.
+    (The last agent's entry moves too but is never used.)
 
-    The "gated" rule needs `gate` bool[N] (`successor_succeeded`, accumulated over epochs): where it is
-    False only the upward term applies, where True only the downward one. Until its successor has
-    succeeded once, failures after a handover say that stage n + 1 is not learnt yet, not that the
-    handover is bad (peg's insertions at the CPU budget).
-
-    The "trusted" rule (also given `gate`) keeps both terms while the gate is False but holds η_n at or
-    above the middle of `bounds`: a successor that has never succeeded is not weighed above the agent's
-    own critic, and an agent that passes its own stage every time drifts back to even weighting instead of
-    staying where its early failures pushed it (4 rooms: the third agent at 0.95, Naive's greedy door).
-    Once the gate is True, only the downward term, down to the agent's lower bound.
+    Which terms apply depends on the gate. Once it is True (stage n + 1 has succeeded at least once), only
+    the downward term, for both rules. Before, "gated" applies only the upward term: failures after a
+    handover say that stage n + 1 is not learnt yet, not that the handover is bad (peg's insertions at the
+    CPU budget). "trusted" applies both but holds η_n at or above the middle of `bounds`: a successor that
+    has never succeeded is not weighed above the agent's own critic, and an agent that passes its own stage
+    every time drifts back to even weighting instead of staying where its early failures pushed it (4 rooms:
+    the third agent at 0.95, Naive's greedy door).
     """
     import jax.numpy as jnp
 
+    if rule not in OUTCOME_RULES:
+        raise ValueError(f"outcome_eta: rule must be one of {OUTCOME_RULES}, got {rule!r}")
     reached = _reached(stages, successes)
     entered, failed = reached[:-1], reached[:-1] - reached[1:]
     failed_next = jnp.concatenate([failed[1:], jnp.zeros((1,), failed.dtype)])
-    up_rate = rate if up_rate is None else up_rate
-    middle = sum(bounds) / 2
-    lower = jnp.minimum(bounds[0] + floor_step * jnp.arange(eta.shape[0]), middle)
-    if rule in GATED_RULES:
-        if gate is None:
-            raise ValueError(f"outcome_eta: rule {rule!r} needs gate (successor_succeeded)")
-        failed = jnp.where(gate, 0.0, failed)
-        if rule == "trusted":
-            lower = jnp.where(gate, lower, middle)
-        else:
-            failed_next = jnp.where(gate, failed_next, 0.0)
-    moved = eta + (up_rate * failed - rate * failed_next) / jnp.maximum(entered, 1.0)
+    failed = jnp.where(gate, 0.0, failed)
+    if rule == "trusted":
+        lower = jnp.where(gate, bounds[0], sum(bounds) / 2)
+    else:
+        lower = jnp.full(eta.shape, bounds[0])
+        failed_next = jnp.where(gate, failed_next, 0.0)
+    moved = eta + (rate * failed - rate * failed_next) / jnp.maximum(entered, 1.0)
     return jnp.clip(jnp.where(entered > 0, moved, eta), lower, bounds[1])

@@ -328,6 +328,7 @@ def resume_config(args: Args) -> Config:
     """The resumed run's config; arguments given again must agree with it (total_steps may grow)."""
     run_dir = args.resume
     saved = outputs.read_config(run_dir, field="resume")
+    saved.check_trainable()
     if args.out is not None and args.out != run_dir:
         raise ConfigError("out", f"--out {args.out} differs from --resume {run_dir}; give only --resume")
 
@@ -402,6 +403,7 @@ def run(config: Config, out: Path, progress: bool = True, resume: bool = False,
     `video_every`, `video_members`: `ccp_jax.video`; an env that cannot be drawn is refused before training.
     Returns the summary (per member: final success = mean of the last 10 epochs).
     """
+    config.check_trainable()
     video.check_options(config, video_every, video_members)
     # A refused resume (damaged rows, a hole before the checkpoints) or an env that cannot be drawn stops here,
     # before anything is written, compiled or logged.

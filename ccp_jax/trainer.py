@@ -68,6 +68,7 @@ class Trainer(NamedTuple):
 
 def make_train(config: Config, env: Env) -> Trainer:
     """Pure `init(seed)` and `train_step(state, eta)` for one run of `config` on `env`."""
+    config.check_trainable()
     if env.num_stages != config.num_stages:
         raise ValueError(f"rooms: the env has {env.num_stages} stages but the config expects {config.num_stages}")
     obs_size, action_size = env.observation_size, env.action_size

@@ -16,10 +16,10 @@ from ccp_jax.train import main, run
 from ccp_jax.grid import make_grid_train
 from saved import latest_state  # tests/ is on sys.path (conftest)
 
-# 3 epochs, 2 members; the running normaliser and an "auto" ratio (its outcome rule's, which moves every
+# 3 epochs, 2 members; the running normaliser and an "auto" ratio (the trusted rule's, which moves every
 # epoch) put their state into the checkpoint too.
 CONFIG = make_config("tiny", etas=((0.1,), ("auto",)), seeds=(0,), normaliser="ema", total_steps=600,
-                     eta_auto_rule="outcomes")
+                     eta_auto_rule="trusted")
 
 
 def _rows(run_dir):

@@ -1,4 +1,5 @@
 """Bad input fails fast, naming the field; presets and the grid resolve as documented."""
+import json
 import math
 
 import pytest
@@ -159,6 +160,43 @@ def test_a_config_json_from_before_peg_model_reads_as_the_arm():
     assert Config.from_dict(hand.to_dict()) == hand  # a file that records it keeps it
 
 
+def test_a_run_with_a_retired_setting_reads_plots_and_compares_but_refuses_to_train(tmp_path):
+    """docs/design.md#retired-settings: a removed setting at its old default reads as if absent; a retired value
+    reads into Config.retired, which keeps the run apart from others and stops training and resume by name."""
+    from ccp_jax import outputs, plot
+    from ccp_jax.config import Config
+    from ccp_jax.train import main as train_main
+
+    current = make_config("tiny", etas=(("auto",),), eta_auto_rule="trusted")
+    nested = current.to_dict()
+    nested["ablations"].update(eta_auto_up_rate=None, eta_auto_floor_step=0.0)  # as every version-2 file wrote them
+    assert Config.from_dict(nested) == current and not current.retired
+    flat = {**current.flat(), "eta_auto_rule": "outcomes", "eta_auto_up_rate": 0.0}  # a version-1 file
+    old = Config.from_dict(flat)
+    assert old.retired == (("eta_auto_rule", "outcomes"), ("eta_auto_up_rate", 0.0))
+    assert old.ccp.eta_auto_rule == "ranges"  # the section holds the default; the run's value is in `retired`
+    assert old.differing(current) == ["eta_auto_rule", "retired"]
+    assert Config.from_dict(json.loads(json.dumps(old.to_dict()))) == old
+    floors = Config.from_dict({**nested, "ablations": {**nested["ablations"], "eta_auto_floor_step": 0.25}})
+    assert floors.retired == (("eta_auto_floor_step", 0.25),) and floors.ccp.eta_auto_rule == "trusted"
+    with pytest.raises(ConfigError, match="^eta_auto_rule: 'outcomes' is retired"):
+        old.check_trainable()
+
+    run = tmp_path / "old_run"
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps(flat))
+    row = {"epoch": 0, "env_steps": 200, "member": 0, "seed": 0, "eta": ["auto"], "algo": "csac",
+           "success_rate": 0.5}
+    (run / "metrics.jsonl").write_text(json.dumps(row) + "\n")
+    assert outputs.read_config(run) == old
+    [[series]] = plot.load_curves([run]).values()
+    assert series[1].tolist() == [0.5]
+    before = {p.name: p.read_bytes() for p in run.iterdir()}
+    with pytest.raises(ConfigError, match="^eta_auto_rule: 'outcomes' is retired"):
+        train_main(["--resume", str(run)])
+    assert {p.name: p.read_bytes() for p in run.iterdir()} == before  # nothing written
+
+
 def test_a_folder_without_a_readable_run_is_named_by_the_argument_that_gave_it(tmp_path, capsys):
     from ccp_jax import evaluate, outputs, plot
 
@@ -204,11 +242,11 @@ def _tupled(x):
 
 def test_every_committed_config_json_reads_with_its_own_values():
     """Every config.json under experiments/results (each form ever written) migrates to the current form with the
-    values it holds; a setting it lacks takes its default, a version-1 maze's kinematics LEGACY_MAZE's robot."""
-    import json
+    values it holds; a setting it lacks takes its default, a version-1 maze's kinematics LEGACY_MAZE's robot; a
+    retired one is in `retired` unless it held a removed setting's old default."""
     from pathlib import Path
 
-    from ccp_jax.config import LEGACY_MAZE, SECTION_OF, SECTIONS, Config
+    from ccp_jax.config import LEGACY_MAZE, RETIRED_SETTINGS, RETIRED_VALUES, SECTION_OF, SECTIONS, Config
 
     files = sorted((Path(__file__).parent.parent / "experiments" / "results").glob("**/config.json"))
     assert len(files) > 100
@@ -222,8 +260,12 @@ def test_every_committed_config_json_reads_with_its_own_values():
         settings = {k: _tupled(v) for k, v in held.items() if k in SECTION_OF}
         if version > 1 and "algo" in written:
             settings["algo"] = written["algo"]
+        retired = {k: _tupled(v) for k, v in held.items()
+                   if k in RETIRED_SETTINGS and v != RETIRED_SETTINGS[k][1] or v in RETIRED_VALUES.get(k, ())}
+        assert dict(config.retired) == retired, path
+        settings = {k: v for k, v in settings.items() if k not in retired}
         assert {k: flat[k] for k in settings} == settings, path
-        for name in set(SECTION_OF) - set(settings):
+        for name in set(SECTION_OF) - set(settings) - set(retired):
             legacy = version == 1 and config.task.env == "maze" and name in LEGACY_MAZE
             assert flat[name] == (LEGACY_MAZE[name] if legacy else defaults[name]), (path, name)
         for name in ("num_stages", "num_agents", "num_epochs", "grid_size"):

@@ -364,69 +364,37 @@ def test_env_is_traced_once_per_call_kind_on_one_device():
     assert traced == {"reset": 1, "step": 1}
 
 
-def test_outcome_rule_moves_eta_against_hand_values():
+def test_outcome_rules_move_eta_against_hand_values():
     from ccp_jax.eta import outcome_eta
 
-    def move(eta, stages, successes, rate=0.1, bounds=(0.05, 0.95), up_rate=None, rule="outcomes", gate=None,
-             floor_step=0.0):
+    def move(eta, stages, successes, rule, gate, rate=0.1, bounds=(0.05, 0.95)):
         return np.asarray(outcome_eta(jnp.asarray(eta, jnp.float32), jnp.asarray(stages, jnp.float32),
-                                      jnp.float32(successes), rate, bounds, up_rate, rule,
-                                      None if gate is None else jnp.asarray(gate), floor_step))
+                                      jnp.float32(successes), rate, bounds, rule, jnp.asarray(gate)))
 
     # 10 ended episodes: 6 reached stage 1, 2 stage 2, 1 succeeded. Failed in stage 0 / 1 / 2: 4 / 4 / 1.
-    np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1),
-                               [0.5, 0.5 + 0.1 * (4 - 1) / 6, 0.5 + 0.1 * 1 / 2], rtol=1e-6)
-    # Every episode hands over into a stage it then fails in (the maze's pocket): the first ratio falls.
-    np.testing.assert_allclose(move([0.5, 1.0], [5, 5], 0), [0.4, 0.95], rtol=1e-6)
-    # No episode left stage 0: its ratio rises (clipped), and the agents no episode reached keep theirs.
-    np.testing.assert_allclose(move([0.9, 0.3, 0.7], [3, 0, 0], 0), [0.95, 0.3, 0.7], rtol=1e-6)
-    np.testing.assert_allclose(move([0.2, 1.0], [0, 0], 0), [0.2, 0.95], rtol=1e-6)  # nothing ended
-    np.testing.assert_allclose(move([0.5, 0.5], [4, 4], 4), [0.5, 0.5], rtol=1e-6)  # all succeed: nothing moves
-    # Own failures weighed by up_rate: 0 lets the ratios only fall.
-    np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1, up_rate=0.0),
-                               [0.5 - 0.1 * 4 / 10, 0.5 - 0.1 * 1 / 6, 0.5], rtol=1e-6)
     # "gated": before the successor's first success only the upward term, after it only the downward one.
-    np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1, rule="gated", gate=[False, True, False]),
+    np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1, "gated", [False, True, False]),
                                [0.5 + 0.1 * 4 / 10, 0.5 - 0.1 * 1 / 6, 0.5 + 0.1 * 1 / 2], rtol=1e-6)
     # Peg at the CPU budget: grasps hand over, no insertion ever succeeds, so the grasping agent's ratio
     # rises with its own failures instead of falling with the successor's.
-    np.testing.assert_allclose(move([0.5, 1.0], [5, 2], 0, rule="gated", gate=[False, False]), [0.56, 0.95],
-                               rtol=1e-6)
-    np.testing.assert_allclose(move([0.5, 1.0], [5, 2], 0), [0.5 + 0.1 * (3 - 2) / 5, 0.95], rtol=1e-6)
+    np.testing.assert_allclose(move([0.5, 1.0], [5, 2], 0, "gated", [False, False]), [0.56, 0.95], rtol=1e-6)
     # "trusted": both terms before the successor's first success, but not below the middle (0.5) then.
-    np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1, gate=[False, True, False], rule="trusted"),
+    np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1, "trusted", [False, True, False]),
                                [0.5 + 0.1 * (4 - 4) / 10, 0.5 - 0.1 * 1 / 6, 0.5 + 0.1 * 1 / 2], rtol=1e-6)
     # 4 rooms: the third agent passes its room every time into a successor that never succeeded: from 0.95
     # back towards even weighting, held there; with the gate open the same episodes take it to the floor.
-    np.testing.assert_allclose(move([0.95, 1.0], [5, 5], 0, gate=[False, False], rule="trusted"), [0.85, 0.95],
-                               rtol=1e-6)
-    np.testing.assert_allclose(move([0.52, 1.0], [5, 5], 0, gate=[False, False], rule="trusted"), [0.5, 0.95],
-                               rtol=1e-6)
-    np.testing.assert_allclose(move([0.1, 1.0], [5, 5], 0, gate=[True, False], rule="trusted"), [0.05, 0.95],
-                               rtol=1e-6)
-    # A ramp of floors (0.05, 0.3, 0.55 capped at the middle 0.5): each agent hands over into a stage whose
-    # every episode then fails, and falls to its own floor.
-    for stages, eta, expected in (([5, 5, 0, 0], [0.1, 0.6, 0.6, 1.0], [0.05, 0.6, 0.6, 0.95]),
-                                  ([5, 5, 5, 0], [0.6, 0.35, 0.6, 1.0], [0.6, 0.3, 0.6, 0.95]),
-                                  ([5, 5, 5, 5], [0.6, 0.6, 0.55, 1.0], [0.6, 0.6, 0.5, 0.95])):
-        np.testing.assert_allclose(move(eta, stages, 0, gate=[True] * 4, rule="trusted", floor_step=0.25),
-                                   expected, rtol=1e-6)
-        np.testing.assert_allclose(move(eta, stages, 0, up_rate=0.0, floor_step=0.25), expected, rtol=1e-6)
-    with pytest.raises(ValueError, match="needs gate"):
-        move([0.5, 1.0], [5, 5], 0, rule="gated")
-
-
-def test_the_floor_step_reaches_the_outcome_rule(monkeypatch):
-    """`eta_auto_floor_step` is what the epoch's `outcome_eta` receives (traced only, nothing compiled)."""
-    from ccp_jax import eta as eta_module
-    from ccp_jax import trainer as trainer_module
-
-    seen, real = [], eta_module.outcome_eta
-    monkeypatch.setattr(eta_module, "outcome_eta", lambda *a, **k: seen.append(a[8]) or real(*a, **k))
-    config = make_config("tiny", rooms=3, etas=(("auto",),), eta_auto_rule="trusted", eta_auto_floor_step=0.25)
-    run = trainer_module.make_train(config, Line(3, config.task.max_episode_steps))
-    jax.eval_shape(run.train_step, jax.eval_shape(run.init, 0), jnp.full((3,), jnp.nan))
-    assert seen == [0.25]
+    np.testing.assert_allclose(move([0.95, 1.0], [5, 5], 0, "trusted", [False, False]), [0.85, 0.95], rtol=1e-6)
+    np.testing.assert_allclose(move([0.52, 1.0], [5, 5], 0, "trusted", [False, False]), [0.5, 0.95], rtol=1e-6)
+    np.testing.assert_allclose(move([0.1, 1.0], [5, 5], 0, "trusted", [True, False]), [0.05, 0.95], rtol=1e-6)
+    for rule in ("gated", "trusted"):
+        # Every episode hands over into a stage it then fails in (the maze's pocket), gate open: the first ratio falls.
+        np.testing.assert_allclose(move([0.5, 1.0], [5, 5], 0, rule, [True, False]), [0.4, 0.95], rtol=1e-6)
+        # The agents no episode reached keep their ratios; nothing ended: nothing moves; all succeed: nothing moves.
+        np.testing.assert_allclose(move([0.9, 0.3, 0.7], [3, 0, 0], 0, rule, [True] * 3), [0.9, 0.3, 0.7], rtol=1e-6)
+        np.testing.assert_allclose(move([0.2, 1.0], [0, 0], 0, rule, [True, False]), [0.2, 0.95], rtol=1e-6)
+        np.testing.assert_allclose(move([0.5, 0.5], [4, 4], 4, rule, [True, True]), [0.5, 0.5], rtol=1e-6)
+    with pytest.raises(ValueError, match="rule must be one of"):
+        move([0.5, 1.0], [5, 5], 0, "ranges", [False, False])
 
 
 def test_successor_succeeded_looks_two_stages_ahead():
@@ -440,7 +408,7 @@ def test_successor_succeeded_looks_two_stages_ahead():
     assert check([5, 2], 0) == [False, False] and check([5, 2], 1) == [True, False]
 
 
-@pytest.mark.parametrize("rule", ["outcomes", "gated", "trusted"])
+@pytest.mark.parametrize("rule", ["gated", "trusted"])
 def test_outcome_rule_trains_auto_members_at_its_ratios_epoch_by_epoch(rule):
     """An "auto" member trains epoch k + 1 at `outcome_eta` of epoch k's training episodes (with "gated",
     under the gate of every epoch's successes so far); a numeric member beside it keeps its ratio."""
@@ -467,16 +435,16 @@ def test_outcome_rule_trains_auto_members_at_its_ratios_epoch_by_epoch(rule):
 def test_outcome_rule_fields_are_validated_and_reach_the_config_from_the_cli():
     from ccp_jax.train import config_from_args, parse_args
 
-    config = config_from_args(parse_args(["--preset", "tiny", "--eta", "auto", "--eta-auto-rule", "outcomes",
-                                          "--eta-auto-rate", "0.1", "--eta-auto-up-rate", "0",
-                                          "--eta-auto-floor-step", "0.25"]))
-    assert (config.ccp.eta_auto_rule, config.ccp.eta_auto_rate, config.ablations.eta_auto_up_rate) == ("outcomes", 0.1, 0.0)
-    assert config.ablations.eta_auto_floor_step == 0.25
-    with pytest.raises(ConfigError, match="^eta_auto_floor_step: bounds the outcome rules"):
-        make_config("tiny", eta_auto_floor_step=0.25)  # the default rule, "ranges", has no floors
+    config = config_from_args(parse_args(["--preset", "tiny", "--eta", "auto", "--eta-auto-rule", "gated",
+                                          "--eta-auto-rate", "0.1"]))
+    assert (config.ccp.eta_auto_rule, config.ccp.eta_auto_rate) == ("gated", 0.1)
     assert make_config("tiny").ccp.eta_auto_rule == "ranges"
-    for field, value in (("eta_auto_rule", "returns"), ("eta_auto_rate", 0.0), ("eta_auto_rate", 1.5),
-                         ("eta_auto_rate", float("nan")), ("eta_auto_up_rate", -0.1), ("eta_auto_floor_step", -0.1),
-                         ("eta_auto_floor_step", float("inf"))):
+    for field, value in (("eta_auto_rule", "returns"), ("eta_auto_rule", "outcomes"), ("eta_auto_rate", 0.0),
+                         ("eta_auto_rate", 1.5), ("eta_auto_rate", float("nan"))):
         with pytest.raises(ConfigError, match=f"^{field}:"):
             make_config("tiny", **{field: value})
+    for retired in ("eta_auto_up_rate", "eta_auto_floor_step"):  # retired (docs/design.md#retired-settings)
+        with pytest.raises(ConfigError, match=f"^{retired}: not a configuration field"):
+            make_config("tiny", **{retired: 0.0})
+        with pytest.raises(SystemExit):
+            parse_args(["--preset", "tiny", "--" + retired.replace("_", "-"), "0"])
