@@ -15,17 +15,20 @@ best: the highest mean final success; where no ratio inserts, the highest mean f
 handing over on the thick section (`grasp_thick`, the grasp that can insert fully); then the hand-over rate.
 
 Each cell is one vmapped grid in OUT/<cell>/ with a checkpoint every 25 epochs: run the same command again to
-resume a stopped one (finished ones are skipped). Checkpoints hold the buffers (gigabytes) and are deleted when
-a grid finishes; its metrics are compacted (metrics.jsonl.gz) and the folder is what to commit.
+resume a stopped one (finished ones are skipped). When a grid finishes, its last checkpoint is evaluated again on
+`FINAL_EPISODES` deterministic episodes per member (`ccp_jax.evaluate`, written to final_eval.json; these carry
+`hold_thick`, which shows an insertion agent that regrasps), then the checkpoints (the buffers: gigabytes) are
+deleted; its metrics are compacted (metrics.jsonl.gz) and the folder is what to commit.
 
 The report (OUT/table.md, OUT/curves.png): per cell, final success with mean and IQM and 95 % stratified-bootstrap
 intervals; the final hand-over rate (evaluation episodes that reached stage 2) and where those grasps hold the
-peg (`grasp_thick`, `grasp_thin`: envs_mjx/peg_in_hole.py); P(CSAC > baseline); the three over env steps, each
-method's mean over seeds with a bootstrap band.
+peg (`grasp_thick`, `grasp_thin`: envs_mjx/peg_in_hole.py); P(CSAC > baseline); the final evaluation per seed;
+the three over env steps, each method's mean over seeds with a bootstrap band.
 """
 from __future__ import annotations
 
 import dataclasses
+import shutil
 from pathlib import Path
 from typing import Optional
 
@@ -33,13 +36,15 @@ import numpy as np
 
 from ccp_jax import outputs, stats
 from ccp_jax.config import make_config
-from common import PAPER_TABLE1, RESULTS, cli, improvement, rows_by_member, run_grid, with_interval, write_text
+from common import PAPER_TABLE1, RESULTS, cli, improvement, read_json, rows_by_member, run_grid, with_interval, write_text
 
 SEEDS = (30, 31, 32)
 TOTAL_STEPS = 1_000_000
 CHECKPOINT_EVERY = 25
 SETTINGS = dict(env="peg", peg_model="hand", peg_physics="c", hidden=(64, 64), buffer_size=1_000_000)
 WINDOW = outputs.FINAL_WINDOW  # epochs in a final value (the paper's final success)
+FINAL_EPISODES = 50  # per member, in the final evaluation of the last checkpoint
+FINAL_EVAL = "final_eval.json"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -110,6 +115,23 @@ def best_cell(out: Path) -> Optional[Cell]:
     return Cell(f"csac_{eta:g}", "csac", ((eta,),))
 
 
+def final_evaluation(folder: Path, episodes: int = FINAL_EPISODES) -> Optional[list[dict]]:
+    """`ccp_jax.evaluate`'s rows for a finished grid's last checkpoint (start states of seed 1, not the training
+    evaluations' 0), kept in FOLDER/final_eval.json; then its checkpoints are deleted. None where the grid has
+    not finished, or finished without checkpoints and without that file."""
+    from ccp_jax.evaluate import evaluate_run
+
+    path = folder / FINAL_EVAL
+    if path.exists():
+        return read_json(path)
+    if not (folder / "summary.json").exists() or not (folder / "checkpoints").is_dir():
+        return None
+    rows = evaluate_run(folder, episodes=episodes, seed=1)
+    outputs.write_json(path, rows)
+    shutil.rmtree(folder / "checkpoints")
+    return rows
+
+
 # ------------------------------------------------------------------ the report
 def label(cell_name: str) -> str:
     return {"naive": "Naive", "sac": "SAC"}.get(cell_name, "CSAC η = " + cell_name.removeprefix("csac_"))
@@ -151,6 +173,26 @@ def figure(found: dict[str, dict], path: Path) -> None:
     fig.savefig(path)
 
 
+def final_table(found: dict[str, list[dict]]) -> list[str]:
+    """The final evaluations (`final_evaluation`'s rows per cell) as table lines: per seed, success, hand-over
+    and where the pads hold the peg (at the hand-over: thin; at the episode's end: thick)."""
+    if not found:
+        return []
+    episodes = {r["episodes"] for rows in found.values() for r in rows}
+    per_seed = lambda rows, f: " ".join(f"{f(r):.2f}" for r in rows)
+    lines = ["", f"Final evaluation of the last checkpoint, {', '.join(map(str, sorted(episodes)))} deterministic "
+                 "episodes per seed (start states apart from training's): `hold_thick` is the fraction ending with "
+                 "the pads on the thick section, which after a thin hand-over means the insertion agent regrasped.",
+             "", "| method | seeds | success | hand-over | hand-over on the thin section | pads on the thick section "
+                 "at the end (`hold_thick`) |", "|---|---|---|---|---|---|"]
+    for name, rows in found.items():
+        lines.append(f"| {label(name)} | {' '.join(str(r['seed']) for r in rows)} | "
+                     f"{per_seed(rows, lambda r: r['success_rate'])} | {per_seed(rows, lambda r: r['stage_fraction'][1])} | "
+                     f"{per_seed(rows, lambda r: r['eval_end']['grasp_thin'])} | "
+                     f"{per_seed(rows, lambda r: r['eval_end']['hold_thick'])} |")
+    return lines
+
+
 def report(out: Path) -> str:
     found = {cell.name: curves(out / cell.name) for cell in QUEUE[:-1] + tuple(filter(None, [best_cell(out)]))
              if (out / cell.name / "config.json").exists()}
@@ -183,6 +225,8 @@ def report(out: Path) -> str:
             pick = s["eta"] == eta
             lines.append(f"| {eta:g} | " + " | ".join(f"{final(s, m)[pick].mean():.2f}"
                                                        for m in ("success", "handover", "grasp_thick")) + " |")
+    lines += final_table({name: read_json(out / name / FINAL_EVAL) for name in found
+                          if (out / name / FINAL_EVAL).exists()})
     text = "\n".join(lines) + "\n"
     write_text(out / "table.md", text)
     figure(found, out / "curves.png")
@@ -202,7 +246,9 @@ def main(args: Args) -> None:
             if cell == "best" and (cell := best_cell(out)) is None:
                 print("best: the sweep has not finished (or picked 0.9, trained as csac_0.9)")
                 continue
-            run_grid(cell.config(args.smoke), out / cell.name, checkpoint_every=CHECKPOINT_EVERY)
+            run_grid(cell.config(args.smoke), out / cell.name, checkpoint_every=CHECKPOINT_EVERY,
+                     keep_checkpoints=True)
+            final_evaluation(out / cell.name, episodes=2 if args.smoke else FINAL_EPISODES)
     report(out)
 
 

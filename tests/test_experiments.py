@@ -601,3 +601,25 @@ def test_peg_sweep_picks_by_success_then_thick_grasps_then_handovers(tmp_path):
     assert peg_budget.best_cell(tmp_path / "out") is None  # 0.9: trained anyway as csac_0.9
     _fake_peg_sweep(tmp_path / "out2" / "sweep", {**base, 0.3: (0.2, 0.5, 0.4)})
     assert peg_budget.best_cell(tmp_path / "out2") == peg_budget.Cell("csac_0.3", "csac", ((0.3,),))
+
+
+def test_peg_final_evaluation_is_read_back_and_tabled_per_seed(tmp_path):
+    """final_eval.json rows become one table row per cell; an unfinished grid has no final evaluation, and a
+    finished one that already has its file is read, not evaluated again (its checkpoints are left alone)."""
+    from ccp_jax import outputs
+
+    assert peg_budget.final_evaluation(tmp_path / "missing") is None
+    _fake_peg_sweep(tmp_path / "sweep", {eta: (0.0, 0.5, 0.0) for eta in (0.1, 0.3, 0.5, 0.7, 0.9)})
+    (tmp_path / "sweep" / "summary.json").unlink()
+    (tmp_path / "sweep" / "checkpoints").mkdir()
+    assert peg_budget.final_evaluation(tmp_path / "sweep") is None  # still training
+    rows = [dict(member=m, seed=30 + m, eta=[0.9, 1.0], episodes=50, stochastic=False, success_rate=s,
+                 stage_fraction=[1.0, h], eval_end={"grasp_thick": 0.0, "grasp_thin": h, "hold_thick": s})
+            for m, (s, h) in enumerate([(0.82, 0.96), (0.0, 1.0), (0.0, 0.94)])]
+    outputs.write_json(tmp_path / "sweep" / peg_budget.FINAL_EVAL, rows)
+    assert peg_budget.final_evaluation(tmp_path / "sweep") == rows
+    assert (tmp_path / "sweep" / "checkpoints").is_dir()
+    lines = peg_budget.final_table({"csac_0.9": rows})
+    assert "50 deterministic episodes per seed" in lines[1]
+    assert lines[-1] == "| CSAC η = 0.9 | 30 31 32 | 0.82 0.00 0.00 | 0.96 1.00 0.94 | 0.96 1.00 0.94 | 0.82 0.00 0.00 |"
+    assert peg_budget.final_table({}) == []
