@@ -17,8 +17,8 @@ handing over on the thick section (`grasp_thick`, the grasp that can insert full
 Each cell is one vmapped grid in OUT/<cell>/ with a checkpoint every 25 epochs: run the same command again to
 resume a stopped one (finished ones are skipped). When a grid finishes, its last checkpoint is evaluated again on
 `FINAL_EPISODES` deterministic episodes per member (`ccp_jax.evaluate`, written to final_eval.json; these carry
-`hold_thick`, which shows an insertion agent that regrasps), then the checkpoints (the buffers: gigabytes) are
-deleted; its metrics are compacted (metrics.jsonl.gz) and the folder is what to commit.
+`hold_thick`, which shows an insertion agent that regrasps) and each member's final policy is exported
+(policies/, `ccp_jax.export`), then the checkpoints (the buffers: gigabytes) are deleted; its metrics are compacted (metrics.jsonl.gz) and the folder is what to commit.
 
 The report (OUT/table.md, OUT/curves.png): per cell, final success with mean and IQM and 95 % stratified-bootstrap
 intervals; the final hand-over rate (evaluation episodes that reached stage 2) and where those grasps hold the
@@ -117,8 +117,10 @@ def best_cell(out: Path) -> Optional[Cell]:
 
 def final_evaluation(folder: Path, episodes: int = FINAL_EPISODES) -> Optional[list[dict]]:
     """`ccp_jax.evaluate`'s rows for a finished grid's last checkpoint (start states of seed 1, not the training
-    evaluations' 0), kept in FOLDER/final_eval.json; then its checkpoints are deleted. None where the grid has
-    not finished, or finished without checkpoints and without that file."""
+    evaluations' 0), kept in FOLDER/final_eval.json; each member's final policy is kept as a `ccp_jax.export`
+    artefact (FOLDER/policies/member<K>.jaxexport, for looking at its episodes later); then the checkpoints are
+    deleted. None where the grid has not finished, or finished without checkpoints and without that file."""
+    from ccp_jax import export
     from ccp_jax.evaluate import evaluate_run
 
     path = folder / FINAL_EVAL
@@ -127,6 +129,9 @@ def final_evaluation(folder: Path, episodes: int = FINAL_EPISODES) -> Optional[l
     if not (folder / "summary.json").exists() or not (folder / "checkpoints").is_dir():
         return None
     rows = evaluate_run(folder, episodes=episodes, seed=1)
+    for member in range(len(rows)):
+        exported, meta = export.export_chain(folder, member, platforms=("cpu",))
+        export.write(exported, {**meta, "run_dir": folder.name}, folder / "policies" / f"member{member}.jaxexport")
     outputs.write_json(path, rows)
     shutil.rmtree(folder / "checkpoints")
     return rows
