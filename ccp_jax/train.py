@@ -328,7 +328,7 @@ def resume_config(args: Args) -> Config:
     """The resumed run's config; arguments given again must agree with it (total_steps may grow)."""
     run_dir = args.resume
     saved = outputs.read_config(run_dir, field="resume")
-    saved.check_trainable()
+    saved.check_trainable()  # first: the comparison below would name a retired setting's default, not the setting
     if args.out is not None and args.out != run_dir:
         raise ConfigError("out", f"--out {args.out} differs from --resume {run_dir}; give only --resume")
 

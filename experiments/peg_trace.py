@@ -42,10 +42,9 @@ def load(folder: Path, member: int, epoch: Optional[int], exported: bool) -> Cal
     return lambda obs, stage: chain.call(obs, stage)
 
 
-def trace(env, policy: Callable, key: jax.Array, log=print) -> dict:
-    """One greedy episode from `env.reset(key)`, logged as the module says; returns its end (length, success,
-    hold_thick)."""
-    reset, step = jax.jit(env.reset), jax.jit(env.step)
+def trace(env, reset: Callable, step: Callable, policy: Callable, key: jax.Array, log=print) -> dict:
+    """One greedy episode from `reset(key)` (`env`'s, jitted once by the caller, as `step`), logged as the module
+    says; returns its end (length, success, hold_thick)."""
     state, last = reset(key), None
     for t in range(env.episode_length):
         action = np.asarray(policy(state.obs[None], state.info["stage"][None].astype(np.int32)))[0]
@@ -75,10 +74,11 @@ def main(argv: Optional[Sequence[str]] = None) -> list[dict]:
     if config.task.env != "peg":
         raise SystemExit(f"error: run_dir: {args.folder} trained {config.task.env!r}, not peg")
     env, policy = make_env(config), load(args.folder, args.member, args.epoch, args.exported)
+    reset, step = jax.jit(env.reset), jax.jit(env.step)
     ends = []
     for episode in range(args.episodes):
         print(f"episode {episode}:")
-        ends.append(trace(env, policy, jax.random.PRNGKey(args.seed + episode)))
+        ends.append(trace(env, reset, step, policy, jax.random.PRNGKey(args.seed + episode)))
         print(f"  -> {ends[-1]['length']} steps, success {ends[-1]['success']:.0f}, hold_thick {ends[-1]['hold_thick']:.0f}")
     return ends
 
