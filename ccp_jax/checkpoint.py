@@ -23,6 +23,11 @@ from ccp_jax.devices import pad_grid
 
 CHECKPOINT_DIR = "checkpoints"
 
+# Leaves that a fixed bug saved in another shape; given defaults they restart from their initial value, with a
+# warning, instead of refusing the checkpoint. SAC's gate of the outcome rules (one agent: never read) was saved
+# with one entry per stage.
+RESET_IF_RESHAPED = {("successor_succeeded",)}
+
 
 class CheckpointError(ConfigError):
     """A checkpoint is missing, unreadable or does not match the run's config."""
@@ -152,14 +157,19 @@ def _match(saved: dict[tuple[str, ...], Any], abstract_state: Any, item: str, wh
         raise CheckpointError(f"{where} lacks {len(missing)} of this version's {item} arrays ({', '.join(missing[:4])}"
                               f"{' ...' if len(missing) > 4 else ''}): it was saved by another version of ccp-jax; "
                               "start the run afresh")
-    for k, x in zip(keys, leaves):
+    for i, (k, x) in enumerate(zip(keys, leaves)):
         if k in saved and (saved[k].shape[1:] != x.shape[1:] or np.dtype(saved[k].dtype) != np.dtype(x.dtype)):
+            if k in RESET_IF_RESHAPED and defaults is not None:
+                warnings.warn(f"{where}: array {'/'.join(k)} was saved as {saved[k].shape} where this version "
+                              f"keeps {x.shape}; it starts from its initial value", stacklevel=3)
+                keys[i] = ("reset", *k)
+                continue
             raise CheckpointError(f"{where}: array {'/'.join(k)} is {saved[k].shape} {saved[k].dtype} where this "
                                   f"version expects {x.shape} {x.dtype}; start the run afresh")
     if missing:
         warnings.warn(f"{where}: {len(missing)} arrays this version's {item} adds are not in the checkpoint and "
                       f"start from their initial values: {', '.join(missing)}", stacklevel=3)
-    return [k if k == "empty" or k in saved else "default" for k in keys]
+    return [k if k == "empty" or k in saved else "default" for k in keys]  # "reset" paths are not saved
 
 
 def restore(mngr: ocp.CheckpointManager, abstract_state: Any, item: str = "state", epoch: int | None = None,

@@ -139,11 +139,14 @@ def _reached(stages: jax.Array, successes: jax.Array) -> jax.Array:
     return jnp.concatenate([stages, successes[None]])
 
 
-def successor_succeeded(stages: jax.Array, successes: jax.Array) -> jax.Array:
-    """bool[N]: whether any of the epoch's episodes succeeded in stage n + 1 (reached stage n + 2, or the
-    goal); False for the last agent, which has no successor. Arguments as `outcome_eta`'s."""
+def successor_succeeded(stages: jax.Array, successes: jax.Array, num_agents: int) -> jax.Array:
+    """bool[num_agents]: whether any of the epoch's episodes succeeded in stage n + 1 (reached stage n + 2, or
+    the goal); False for the last agent, which has no successor, and for SAC's one agent over every stage.
+    stages float32[num_stages], successes float32[] as `outcome_eta`'s."""
     import jax.numpy as jnp
 
+    if num_agents == 1:
+        return jnp.zeros((1,), bool)
     beyond_next = _reached(stages, successes)[2:]
     return jnp.concatenate([beyond_next > 0, jnp.zeros((1,), bool)])
 

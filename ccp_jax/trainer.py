@@ -98,7 +98,8 @@ def make_train(config: Config, env: Env) -> Trainer:
                                train_success=per_episode(stats.successes, stats.episodes),
                                train_stage_fraction=per_episode(stats.stages, stats.episodes),
                                buffer_size=buffer.size, pull_own=pull_own, pull_next=pull_next)
-        succeeded = state.successor_succeeded | ratios.successor_succeeded(stats.stages, stats.successes)
+        passed = ratios.successor_succeeded(stats.stages, stats.successes, config.num_agents)
+        succeeded = state.successor_succeeded | passed
         eta_auto = ratios.next_auto(state.eta_auto, succeeded, stats.stages, stats.successes, config)
         new_state = TrainState(agents=agents, buffer=buffer, env_state=env_state, key=key,
                                env_steps=env_steps, epoch=state.epoch + 1, eta_auto=eta_auto,

@@ -226,6 +226,27 @@ def test_a_leaf_whose_shape_changed_is_refused_by_name(tmp_path):
     mngr.close()
 
 
+class Gated(NamedTuple):
+    agents: Agents
+    steps: jax.Array
+    successor_succeeded: jax.Array
+
+
+def test_sacs_gate_saved_per_stage_restarts_from_its_initial_value(tmp_path):
+    """SAC's checkpoints held `successor_succeeded` per stage where the state keeps one entry (its one agent has
+    no successor): they resume with the initial value and a warning; any other reshaped leaf is still refused."""
+    mngr = checkpoint.manager(tmp_path)
+    checkpoint.save(mngr, 1, Gated(Agents({"w": jnp.ones((2, 3))}), jnp.array([5, 6]), jnp.ones((2, 2), bool)))
+    init = Gated(Agents({"w": jnp.zeros((2, 3))}), jnp.zeros(2, jnp.int32), jnp.zeros((2, 1), bool))
+    with pytest.warns(UserWarning, match=r"successor_succeeded was saved as \(2, 2\) .* starts from its initial"):
+        _, got = checkpoint.restore(mngr, _abstract(init), defaults=lambda: init)
+    np.testing.assert_array_equal(got.steps, [5, 6])
+    np.testing.assert_array_equal(got.successor_succeeded, np.zeros((2, 1), bool))
+    with pytest.raises(checkpoint.CheckpointError, match="successor_succeeded is \\(2, 2\\) bool"):
+        checkpoint.restore(mngr, _abstract(init))  # no defaults to restart it from
+    mngr.close()
+
+
 def test_a_checkpoint_written_before_leaves_were_keyed_by_path_still_restores(tmp_path):
     """tests/fixtures/position_keyed_run: a Toy grid of 2 saved at epoch 3 by the code that keyed leaves by position."""
     run = tmp_path / "run"

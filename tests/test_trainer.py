@@ -116,6 +116,18 @@ def test_state_keeps_its_avals_across_an_epoch(grid_run):
     assert aval(after) == before
 
 
+@pytest.mark.parametrize("algo", ["naive", "sac"])
+def test_baseline_state_keeps_its_shapes_across_an_epoch(algo):
+    """SAC's one agent over both stages included: a leaf that changes shape after the first epoch compiles the
+    epoch twice and makes every checkpoint unreadable by the run that wrote it."""
+    config = make_config("tiny", rooms=2, algo=algo, total_steps=400)
+    trainer = make_train(config, make_env(config))
+    state = jax.eval_shape(trainer.init, jnp.int32(0))
+    after, _ = jax.eval_shape(trainer.train_step, state, jnp.asarray(config.grid_arrays()[0][0]))
+    shapes = lambda tree: jax.tree.map(lambda x: (x.shape, x.dtype), tree)
+    assert shapes(after) == shapes(state)
+
+
 def test_same_seed_is_identical(grid_run):
     trainer, (state, _) = grid_run
     again, _ = _train(GRID, trainer, 2)
@@ -400,12 +412,14 @@ def test_outcome_rules_move_eta_against_hand_values():
 def test_successor_succeeded_looks_two_stages_ahead():
     from ccp_jax.eta import successor_succeeded
 
-    def check(stages, successes):
-        return np.asarray(successor_succeeded(jnp.asarray(stages, jnp.float32), jnp.float32(successes))).tolist()
+    def check(stages, successes, agents=None):
+        return np.asarray(successor_succeeded(jnp.asarray(stages, jnp.float32), jnp.float32(successes),
+                                              agents or len(stages))).tolist()
 
     assert check([10, 6, 2], 1) == [True, True, False]  # stage 2 reached (agent 0's), a success (agent 1's)
     assert check([10, 6, 0], 0) == [False, False, False]
     assert check([5, 2], 0) == [False, False] and check([5, 2], 1) == [True, False]
+    assert check([5, 2], 1, agents=1) == [False]  # SAC: one agent over both stages, no successor
 
 
 @pytest.mark.parametrize("rule", ["gated", "trusted"])
@@ -423,7 +437,7 @@ def test_outcome_rule_trains_auto_members_at_its_ratios_epoch_by_epoch(rule):
     for m in history:
         stages = jnp.asarray(m.train_stage_fraction[0] * m.train_episodes[0])
         successes = jnp.asarray(m.train_success[0] * m.train_episodes[0])
-        gate = gate | successor_succeeded(stages, successes)
+        gate = gate | successor_succeeded(stages, successes, 2)
         expected.append(float(outcome_eta(jnp.full((2,), expected[-1]), stages, successes, 0.2,
                                           config.ccp.eta_auto_range, rule=rule, gate=gate)[0]))
     np.testing.assert_allclose(used[:, 0], expected[:3], rtol=1e-5)
