@@ -364,6 +364,9 @@ class Ablations:
     """Maze: a[0] < 0 drives the robot backwards (v = a[0] v_max); off: forwards only, v = (a[0] + 1)/2 v_max."""
     maze_slide: bool = True
     """Maze: a step blocked by a wall slides along it for the rest of the step; off: it stops there."""
+    peg_grip_held: bool = False
+    """Peg: from the hand-over on, the gripper stays closed whatever the insertion agent commands, so the first
+    agent's grasp decides insertability (no regrasp). Not the paper's task: a diagnostic (docs/peg.md)."""
     network_init: NetworkInit = "flax"
     """Initial weights: flax (lecun-normal kernels, zero biases) or rlkit (RLkit's SAC: fan-in uniform hidden
     layers, last layers U(±3e-3) critic and U(±1e-3) actor, so every output starts near 0)."""
@@ -394,6 +397,7 @@ class Ablations:
     def check(self) -> None:
         _boolean(self, "maze_reverse")
         _boolean(self, "maze_slide")
+        _boolean(self, "peg_grip_held")
         _choice(self, "network_init", NETWORK_INITS, "init")
         _choice(self, "tanh_log_prob", TANH_LOG_PROBS, "form")
         _choice(self, "next_action", NEXT_ACTIONS, "rule")
@@ -607,6 +611,8 @@ class Config:
         for name in ("peg_model", "peg_physics"):
             if self.task.env != "peg" and getattr(self.task, name) != getattr(Task, name):
                 raise ConfigError(name, f"is an option of peg; env {self.task.env!r} has no such setting")
+        if self.task.env != "peg" and self.ablations.peg_grip_held:
+            raise ConfigError("peg_grip_held", f"is an option of peg; env {self.task.env!r} has no such setting")
 
     def _check_cycles(self) -> None:
         budget, cycles = self.budget, self.ablations.train_cycles_per_epoch

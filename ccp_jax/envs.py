@@ -25,7 +25,7 @@ def make_env(config: "Config") -> "Env":
         from envs_mjx.peg_in_hole import PegInHole
 
         return PegInHole(episode_length=config.task.max_episode_steps, model=config.task.peg_model,
-                         physics=config.task.peg_physics)
+                         physics=config.task.peg_physics, grip_held=config.ablations.peg_grip_held)
     if config.task.env == "pusher":
         from envs_mjx.pusher import Pusher
 

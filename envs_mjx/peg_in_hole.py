@@ -330,6 +330,10 @@ class PegInHole(Env):
     ``physics``: "mjx" (MuJoCo MJX, runs on any JAX device) or "c" (C MuJoCo on the host behind
     `jax.pure_callback`, 10x and more faster on a CPU; `envs_mjx.peg_c`, docs/peg.md#c-physics); ``PHYSICS``.
     The task is the same on both: only the physics step and the forward pass behind the `Readout` move.
+    ``grip_held``: from the hand-over on, the gripper closes with full force whatever a[1] commands, so the
+    grasp that handed over is the one that inserts. Not the paper's task (its insertion agent commands the
+    gripper and may regrasp): a diagnostic of whether the first agent's grasp is cooperative
+    (docs/peg.md#the-grip-held-variant).
     """
 
     def __init__(
@@ -347,6 +351,7 @@ class PegInHole(Env):
         solver_ls_iterations: int | None = None,
         model: str = "arm",
         physics: str = "mjx",
+        grip_held: bool = False,
     ):
         if model not in MODELS:
             raise ValueError(f"model: unknown robot model {model!r}; choose one of {MODELS}")
@@ -362,6 +367,7 @@ class PegInHole(Env):
         self.grasp_close_min = float(grasp_close_min)
         self.hold_gain = float(hold_gain)
         self.randomise = bool(randomise)
+        self.grip_held = bool(grip_held)
         self.num_stages = 2
 
         drive_cls = _ArmDrive if model == "arm" else _HandDrive
@@ -458,6 +464,8 @@ class PegInHole(Env):
 
     def step(self, state: State, action: jax.Array) -> State:
         action = jnp.clip(jnp.asarray(action, jnp.float32), -1.0, 1.0)
+        if self.grip_held:  # after the hand-over the gripper closes whatever a[1] says: no regrasp
+            action = action.at[1].set(jnp.where(state.info["stage"] >= 1, 1.0, action[1]))
         ctrl = self._control(self.readout(state.pipeline_state), action)
         d = self._physics_step(state.pipeline_state, ctrl)
         ro = self.readout(d)
@@ -603,17 +611,28 @@ def scripted_action(state: State, policy: jax.Array, key: jax.Array) -> jax.Arra
     ``policy``: 0 grasps the middle of the thick section (0.05 m behind the peg centre, or as far back
     as the gripper reaches, which always leaves >= 15 mm of box to hold) and pushes on: full insertion;
     1 grasps the peg centre, the grasp reward's greedy choice, and pushes on: stalls short; 2 grasps
-    the thick section, then opens and slides on: the peg stays; 3 acts uniformly at random (``key``).
+    the thick section, then opens and slides on: the peg stays; 3 acts uniformly at random (``key``);
+    4 grasps the peg centre, then regrasps: opens, moves back to the thick section, closes and pushes on
+    (the insertion agent may command the gripper, so a thin hand-over can still insert; not with
+    ``grip_held``).
     """
     o, stage = state.obs, state.info["stage"]
     grip_x, peg_x = o[OBS_SLICES["grip_pos"]][0], o[OBS_SLICES["peg_pos"]][0]
     opening = o[OBS_SLICES["finger_opening"]][0]
-    target = peg_x + jnp.where(policy == 1, 0.0, -(CENTRE_TO_SHOULDER + THICK_LEN / 2))
+    target = peg_x + jnp.where((policy == 1) | (policy == 4), 0.0, -(CENTRE_TO_SHOULDER + THICK_LEN / 2))
     target = jnp.maximum(target, GRIP_X_LIMITS[0] + 0.004)
     err = target - grip_x
     closing = (jnp.abs(err) < 0.003) | (opening < 0.075)
     grasp = jnp.stack([jnp.where(closing, 0.0, jnp.clip(err / 0.02, -1.0, 1.0)), jnp.where(closing, 1.0, -1.0)])
     after = jnp.where(policy == 2, jnp.array([1.0, -1.0]), jnp.array([1.0, 1.0]))  # release: open, slide on
+    # The regrasp, from the thick target's distance alone: far from it, open fully, then move; there, close,
+    # then push once closed on the 40 mm box.
+    thick = peg_x - (CENTRE_TO_SHOULDER + THICK_LEN / 2)
+    thick = jnp.maximum(thick, GRIP_X_LIMITS[0] + 0.004) - grip_x
+    regrasp = jnp.where(jnp.abs(thick) > 0.004,
+                        jnp.stack([jnp.where(opening > 0.075, jnp.clip(thick / 0.02, -1.0, 1.0), 0.0), -1.0]),
+                        jnp.stack([jnp.where(opening < 0.045, 1.0, 0.0), 1.0]))
+    after = jnp.where(policy == 4, regrasp, after)
     act = jnp.where(stage >= 1, after, grasp)
     return jnp.where(policy == 3, jax.random.uniform(key, (2,), minval=-1.0, maxval=1.0), act)
 

@@ -40,6 +40,8 @@ from ccp_jax.train import Args, config_from_args, parse_args
     (dict(peg_model="hand"), "peg_model"),  # a peg option on another env (tiny's maze)
     (dict(env="peg", peg_physics="warp"), "peg_physics"),
     (dict(peg_physics="c"), "peg_physics"),  # a peg option on another env (tiny's maze)
+    (dict(peg_grip_held=True), "peg_grip_held"),
+    (dict(env="peg", peg_grip_held="yes"), "peg_grip_held"),
 ])
 def test_bad_config_names_the_field(overrides, field):
     with pytest.raises(ConfigError) as err:

@@ -176,6 +176,54 @@ def test_release_after_grasp_keeps_stage(run, env):
     assert len(moved) <= (2 if env.physics == "c" else 0), moved
 
 
+# ----- regrasps, and the grip-held variant that rules them out (C physics: the override acts before either) ------
+REGRASP, RELEASE_POLICY = 4, 2
+
+
+@pytest.fixture(scope="module", params=P.MODELS)
+def regrasps(request):
+    """Per grip_held (False, True): 8 centre-grasp-then-regrasp and 8 grasp-then-release episodes of 200 steps
+    on C MuJoCo; numpy arrays [16, 200, ...]."""
+    out = {}
+    for held in (False, True):
+        env = PegInHole(episode_length=200, model=request.param, physics="c", grip_held=held)
+
+        def one(key, policy, env=env):
+            def body(s, k):
+                s2 = env.step(s, scripted_action(s, policy, k))
+                return s2, dict(success=s2.metrics["success"], stage=s2.info["stage"],
+                                grasp_thin=s2.metrics["grasp_thin"], hold_thick=s2.metrics["hold_thick"],
+                                opening=s2.obs[OBS_SLICES["finger_opening"]][0])
+            return jax.lax.scan(body, env.reset(key), jax.random.split(key, 200))[1]
+
+        policies = jnp.array([REGRASP] * 8 + [RELEASE_POLICY] * 8, jnp.int32)
+        out[held] = jax.tree.map(np.asarray, jax.jit(jax.vmap(one))(jax.random.split(jax.random.PRNGKey(3), 16),
+                                                                   policies))
+    return out
+
+
+def test_the_insertion_agent_can_regrasp_a_thin_hand_over(regrasps):
+    """The paper's task lets the second agent command the gripper: a centre (thin) hand-over, let go and taken
+    again on the thick section, inserts. So a thin hand-over alone does not rule out a success."""
+    tr = regrasps[False]
+    for i in range(8):
+        t = _first(tr["success"][i] > 0)
+        assert t > 0, f"env {i}: the regrasp did not insert"
+        assert tr["grasp_thin"][i, t] == 1.0 and tr["hold_thick"][i, t] == 1.0  # thin hand-over, thick at the end
+
+
+def test_with_the_grip_held_the_hand_over_grasp_decides(regrasps):
+    """grip_held: the regrasp's opening is overridden, so a thin hand-over never inserts; the release after a
+    thick grasp is overridden too, and pushing on inserts."""
+    tr = regrasps[True]
+    for i in range(8):
+        t = _first(tr["stage"][i] >= 1)
+        assert t > 0 and not tr["success"][i].any()
+        assert np.all(tr["opening"][i, t:] < 0.02)  # closed on the 16 mm thin section to the end
+    for i in range(8, 16):
+        assert tr["success"][i].any(), f"env {i}: a held thick grasp did not insert"
+
+
 def test_truncation_at_episode_length(run):
     tr = run["np"]
     np.testing.assert_array_equal(tr["steps"][:, -1], T)
@@ -443,4 +491,5 @@ def test_make_env_builds_the_configured_model():
     for model in P.MODELS:
         for physics in P.PHYSICS:
             env = make_env(make_config("tiny", env="peg", peg_model=model, peg_physics=physics))
-            assert (env.model, env.physics, env.episode_length) == (model, physics, 100)
+            assert (env.model, env.physics, env.episode_length, env.grip_held) == (model, physics, 100, False)
+    assert make_env(make_config("tiny", env="peg", peg_grip_held=True)).grip_held
