@@ -13,6 +13,8 @@ The queue: CSAC at η = 0.9 (the paper's best on peg), Naive, SAC, then a short 
 two seeds 40-41, 200 k steps), whose best ratio trains as one more CSAC cell on seeds 30-32. The sweep's
 best: the highest mean final success; where no ratio inserts, the highest mean fraction of final evaluations
 handing over on the thick section (`grasp_thick`, the grasp that can insert fully); then the hand-over rate.
+Last, `HELD`: CSAC η = 0.9 and Naive again with the gripper held closed from the hand-over on (`--peg-grip-held`,
+not the paper's task: no regrasp, so the first agent's grasp decides; docs/peg.md#the-grip-held-variant).
 
 Each cell is one vmapped grid in OUT/<cell>/ with a checkpoint every 25 epochs: run the same command again to
 resume a stopped one (finished ones are skipped). When a grid finishes, its last checkpoint is evaluated again on
@@ -54,25 +56,29 @@ class Cell:
     etas: tuple[tuple[float, ...], ...] = ((1.0,),)
     seeds: tuple[int, ...] = SEEDS
     total_steps: int = TOTAL_STEPS
+    grip_held: bool = False
 
     def config(self, smoke: bool = False):
         """The cell's grid; `smoke`: the "tiny" preset, 2 epochs of 200 steps, 100-step episodes (seconds)."""
         if smoke:
             return make_config("tiny", algo=self.algo, etas=self.etas, seeds=self.seeds, total_steps=400,
                                steps_per_epoch=200, max_episode_steps=100, env="peg", peg_model="hand",
-                               peg_physics="c")
+                               peg_physics="c", peg_grip_held=self.grip_held)
         return make_config("small", algo=self.algo, etas=self.etas, seeds=self.seeds,
-                           total_steps=self.total_steps, **SETTINGS)
+                           total_steps=self.total_steps, peg_grip_held=self.grip_held, **SETTINGS)
 
 
 SWEEP = Cell("sweep", "csac", tuple((e,) for e in (0.1, 0.3, 0.5, 0.7, 0.9)), seeds=(40, 41), total_steps=200_000)
 QUEUE = (Cell("csac_0.9", "csac", ((0.9,),)), Cell("naive", "naive"), Cell("sac", "sac"), SWEEP)
+HELD = (Cell("csac_0.9_held", "csac", ((0.9,),), grip_held=True), Cell("naive_held", "naive", grip_held=True))
+HELD_SUFFIX = "_held"
 
 
 @dataclasses.dataclass
 class Args:
     cells: Optional[tuple[str, ...]] = None
-    """Train only these cells (csac_0.9, naive, sac, sweep, best: the sweep's best ratio), in the queue's order."""
+    """Train only these cells (csac_0.9, naive, sac, sweep, best: the sweep's best ratio, csac_0.9_held,
+    naive_held), in the queue's order."""
     out: Optional[Path] = None
     """Results folder (default experiments/results/peg_budget)."""
     report_only: bool = False
@@ -139,7 +145,9 @@ def final_evaluation(folder: Path, episodes: int = FINAL_EPISODES) -> Optional[l
 
 # ------------------------------------------------------------------ the report
 def label(cell_name: str) -> str:
-    return {"naive": "Naive", "sac": "SAC"}.get(cell_name, "CSAC η = " + cell_name.removeprefix("csac_"))
+    name = cell_name.removesuffix(HELD_SUFFIX)
+    held = ", grip held" if name != cell_name else ""
+    return {"naive": "Naive", "sac": "SAC"}.get(name, "CSAC η = " + name.removeprefix("csac_")) + held
 
 
 def row(name: str, c: dict, paper: Optional[float]) -> str:
@@ -199,12 +207,12 @@ def final_table(found: dict[str, list[dict]]) -> list[str]:
 
 
 def report(out: Path) -> str:
-    found = {cell.name: curves(out / cell.name) for cell in QUEUE[:-1] + tuple(filter(None, [best_cell(out)]))
+    found = {cell.name: curves(out / cell.name) for cell in QUEUE[:-1] + tuple(filter(None, [best_cell(out)])) + HELD
              if (out / cell.name / "config.json").exists()}
     found = {name: c for name, c in found.items() if c["success"].size > 0}
     if not found:
         raise SystemExit(f"error: out: no runs of peg_budget.py in {out.resolve()}")
-    paper = lambda name: (PAPER_TABLE1[name]["peg"] if name in ("naive", "sac")
+    paper = lambda name: (None if name.endswith(HELD_SUFFIX) else PAPER_TABLE1[name]["peg"] if name in ("naive", "sac")
                           else PAPER_TABLE1["csac"].get(float(name.removeprefix("csac_")), {}).get("peg"))
     lines = ["# Peg in hole at 1 M env steps (the hand on C MuJoCo)", "",
              f"Seeds {SEEDS[0]}–{SEEDS[-1]}; [64, 64] networks, buffer 1e6, the paper's epoch. Finals: the mean of "
@@ -215,7 +223,8 @@ def report(out: Path) -> str:
              "|---|---|---|---|---|---|---|---|---|---|"]
     lines += [row(name, c, paper(name)) for name, c in found.items()]
     csac = [n for n in found if n.startswith("csac_")]
-    pairs = [(a, b) for a in csac for b in ("naive", "sac") if b in found]
+    held = lambda name: HELD_SUFFIX if name.endswith(HELD_SUFFIX) else ""  # a held cell against held baselines
+    pairs = [(a, b + held(a)) for a in csac for b in ("naive", "sac") if b + held(a) in found]
     if pairs:
         lines += ["", "| CSAC | baseline | P(CSAC > baseline), final success |", "|---|---|---|"]
         lines += [f"| {label(a)} | {label(b)} | {improvement(final(found[a], 'success'), final(found[b], 'success'))} |"
@@ -242,10 +251,10 @@ def report(out: Path) -> str:
 def main(args: Args) -> None:
     out = args.out or RESULTS / "peg_budget"
     if not args.report_only:
-        names = [c.name for c in QUEUE] + ["best"]
+        names = [c.name for c in QUEUE] + ["best"] + [c.name for c in HELD]
         if args.cells and (unknown := sorted(set(args.cells) - set(names))):
             raise SystemExit(f"error: cells: unknown {unknown}; choose from {names}")
-        for cell in QUEUE + ("best",):
+        for cell in QUEUE + ("best",) + HELD:
             if args.cells and (cell if cell == "best" else cell.name) not in args.cells:
                 continue
             if cell == "best" and (cell := best_cell(out)) is None:

@@ -603,6 +603,12 @@ def test_peg_sweep_picks_by_success_then_thick_grasps_then_handovers(tmp_path):
     assert peg_budget.best_cell(tmp_path / "out2") == peg_budget.Cell("csac_0.3", "csac", ((0.3,),))
 
 
+def test_peg_held_cells_train_the_grip_held_variant_and_say_so():
+    assert [c.config(smoke=True).ablations.peg_grip_held for c in peg_budget.QUEUE + peg_budget.HELD] == \
+        [False] * len(peg_budget.QUEUE) + [True] * len(peg_budget.HELD)
+    assert [peg_budget.label(c.name) for c in peg_budget.HELD] == ["CSAC η = 0.9, grip held", "Naive, grip held"]
+
+
 def test_peg_final_evaluation_is_read_back_and_tabled_per_seed(tmp_path):
     """final_eval.json rows become one table row per cell; an unfinished grid has no final evaluation, and a
     finished one that already has its file is read, not evaluated again (its checkpoints are left alone)."""
