@@ -31,7 +31,7 @@ What the report (`pbt_compare.md` in the results folder) says, over the blocks:
   consecutive).
 
 Intervals: 95 % stratified-bootstrap intervals over the blocks, mean and IQM;
-P(population's best > sweep's best) over paired blocks.
+P(population's best > sweep's best, and > the auto rule's) over all pairs of blocks.
 """
 from __future__ import annotations
 
@@ -137,8 +137,9 @@ def grid_scores(run: Path, window: int) -> dict:
                     fitness=training_fitness(rows[m["member"]], window), success=final_success(rows[m["member"]]),
                     line=line[m["member"]]) for m in summary["members"]]
     best = max(members, key=lambda m: m["fitness"])  # ties: the first member
+    picked = best_swept_eta(summary)  # None for a grid of auto members
     return dict(members=members, best=best, median=float(np.median([m["success"] for m in members])),
-                wall_s=summary.get("wall_s"), picked_eta=best_swept_eta(summary)[0])
+                wall_s=summary.get("wall_s"), picked_eta=None if picked is None else picked[0])
 
 
 def by_eta(grid: dict) -> dict[float, list[float]]:
@@ -177,9 +178,9 @@ def report(args: Args, out: Path, domain: str) -> Optional[str]:
     for name, grids in (("population", pops), ("sweep", sweeps)):
         values = [g["median"] for g in grids]
         lines.append(f"| {name} | median | {mean_and_iqm(values)} | {' '.join(f'{v:.2f}' for v in values)} |")
-    if args.auto_rule:
-        autos = [grid_scores(f, args.pbt_every) for b in range(args.blocks)
-                 if ((f := folder(out, domain, b, args.auto_rule)) / "summary.json").exists()]
+    autos = [grid_scores(f, args.pbt_every) for b in range(args.blocks) if args.auto_rule
+             and ((f := folder(out, domain, b, args.auto_rule)) / "summary.json").exists()]
+    if autos:
         for which, values in (("best", [g["best"]["success"] for g in autos]), ("median", [g["median"] for g in autos])):
             if values:
                 lines.append(f"| auto, {args.auto_rule} ({len(values)} blocks) | {which} | {mean_and_iqm(values)} | "
@@ -189,8 +190,12 @@ def report(args: Args, out: Path, domain: str) -> Optional[str]:
         lines.append(f"| sweep's pick, on the other blocks' seeds | η = "
                      f"{', '.join(eta_label(e) for e, _ in fresh)} | {mean_and_iqm(values)} | "
                      f"{' '.join(f'{v:.2f}' for v in values)} |")
-    lines += ["", f"P(population's kept member > sweep's kept member), paired blocks: "
-                  f"{improvement(best_pop, best_sweep)}.", ""]
+    lines += ["", f"P(population's kept member > sweep's kept member), over all pairs of blocks: "
+                  f"{improvement(best_pop, best_sweep)}."]
+    if autos:
+        lines += [f"P(population's kept member > auto's kept member), over all pairs of blocks: "
+                  f"{improvement(best_pop, [g['best']['success'] for g in autos])}."]
+    lines += [""]
     lines += ["| block | seeds | population's kept member: final ratios | its success | the line it carries "
               "(start η, seed) | lines left at the end | all final ratios | wall s, population / sweep |",
               "|---|---|---|---|---|---|---|---|"]
