@@ -415,6 +415,8 @@ class Ablations:
 SECTIONS: dict[str, type] = {"task": Task, "grid": Grid, "budget": Budget, "sac": Sac, "ccp": Ccp, "tp": Tp,
                              "ablations": Ablations}
 # Flat setting name -> the section that holds it (None: `Config` itself).
+# The settings only one built-in env reads, by env.
+ENV_OPTIONS = {"maze": ("maze_reverse", "maze_slide"), "peg": ("peg_model", "peg_physics", "peg_grip_held")}
 SECTION_OF: dict[str, str | None] = {"algo": None, **{f.name: section for section, cls in SECTIONS.items()
                                                       for f in dataclasses.fields(cls)}}
 
@@ -605,14 +607,10 @@ class Config:
 
     def _check_env_options(self) -> None:
         """Settings of one built-in env are refused at their non-default values for another env."""
-        for name in ("maze_reverse", "maze_slide"):
-            if self.task.env != "maze" and getattr(self.ablations, name) != getattr(Ablations, name):
-                raise ConfigError(name, f"is an option of the maze; env {self.task.env!r} has no such setting")
-        for name in ("peg_model", "peg_physics"):
-            if self.task.env != "peg" and getattr(self.task, name) != getattr(Task, name):
-                raise ConfigError(name, f"is an option of peg; env {self.task.env!r} has no such setting")
-        if self.task.env != "peg" and self.ablations.peg_grip_held:
-            raise ConfigError("peg_grip_held", f"is an option of peg; env {self.task.env!r} has no such setting")
+        for env, names in ENV_OPTIONS.items():
+            for name in names:
+                if self.task.env != env and self._get(name) != getattr(SECTIONS[SECTION_OF[name]], name):
+                    raise ConfigError(name, f"is an option of {env}; env {self.task.env!r} has no such setting")
 
     def _check_cycles(self) -> None:
         budget, cycles = self.budget, self.ablations.train_cycles_per_epoch

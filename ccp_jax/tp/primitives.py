@@ -14,7 +14,7 @@ from typing import Any, NamedTuple
 import jax
 
 from ccp_jax import checkpoint, outputs
-from ccp_jax.config import Config, ConfigError
+from ccp_jax.config import ENV_OPTIONS, Config, ConfigError
 from ccp_jax.networks import Actor
 from ccp_jax.policy import load_actors
 
@@ -42,10 +42,10 @@ def primitives_config(config: Config) -> Config:
     if saved.task.env != config.task.env or saved.num_stages != config.num_stages:
         raise ConfigError("primitives", f"{run_dir} was trained on {saved.task.env} with {saved.num_stages} stages; "
                                         f"this run is {config.task.env} with {config.num_stages} stages")
-    for name in ("maze_reverse", "maze_slide"):  # primitives trained on other kinematics would act on another robot
-        if getattr(saved.ablations, name) != getattr(config.ablations, name):
-            raise ConfigError(name, f"{run_dir} was trained with {name} = {getattr(saved.ablations, name)}, "
-                                    f"this run has {getattr(config.ablations, name)}")
+    theirs, ours = saved.flat(), config.flat()
+    for name in ENV_OPTIONS.get(config.task.env, ()):  # primitives of another robot or physics act on another task
+        if theirs[name] != ours[name]:
+            raise ConfigError(name, f"{run_dir} was trained with {name} = {theirs[name]}, this run has {ours[name]}")
     if not 0 <= config.tp.primitives_member < saved.grid_size:
         raise ConfigError("primitives_member", f"{run_dir} has members 0..{saved.grid_size - 1}, "
                                                f"got {config.tp.primitives_member}")
