@@ -162,14 +162,14 @@ def _match(saved: dict[tuple[str, ...], Any], abstract_state: Any, item: str, wh
             if k in RESET_IF_RESHAPED and defaults is not None:
                 warnings.warn(f"{where}: array {'/'.join(k)} was saved as {saved[k].shape} where this version "
                               f"keeps {x.shape}; it starts from its initial value", stacklevel=3)
-                keys[i] = ("reset", *k)
+                keys[i] = "default"
                 continue
             raise CheckpointError(f"{where}: array {'/'.join(k)} is {saved[k].shape} {saved[k].dtype} where this "
                                   f"version expects {x.shape} {x.dtype}; start the run afresh")
     if missing:
         warnings.warn(f"{where}: {len(missing)} arrays this version's {item} adds are not in the checkpoint and "
                       f"start from their initial values: {', '.join(missing)}", stacklevel=3)
-    return [k if k == "empty" or k in saved else "default" for k in keys]  # "reset" paths are not saved
+    return [k if k == "empty" or k in saved else "default" for k in keys]
 
 
 def restore(mngr: ocp.CheckpointManager, abstract_state: Any, item: str = "state", epoch: int | None = None,

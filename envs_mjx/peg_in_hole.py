@@ -619,18 +619,18 @@ def scripted_action(state: State, policy: jax.Array, key: jax.Array) -> jax.Arra
     o, stage = state.obs, state.info["stage"]
     grip_x, peg_x = o[OBS_SLICES["grip_pos"]][0], o[OBS_SLICES["peg_pos"]][0]
     opening = o[OBS_SLICES["finger_opening"]][0]
-    target = peg_x + jnp.where((policy == 1) | (policy == 4), 0.0, -(CENTRE_TO_SHOULDER + THICK_LEN / 2))
-    target = jnp.maximum(target, GRIP_X_LIMITS[0] + 0.004)
+    reachable = lambda x: jnp.maximum(x, GRIP_X_LIMITS[0] + 0.004)
+    thick = reachable(peg_x - (CENTRE_TO_SHOULDER + THICK_LEN / 2))
+    target = jnp.where((policy == 1) | (policy == 4), reachable(peg_x), thick)
     err = target - grip_x
     closing = (jnp.abs(err) < 0.003) | (opening < 0.075)
     grasp = jnp.stack([jnp.where(closing, 0.0, jnp.clip(err / 0.02, -1.0, 1.0)), jnp.where(closing, 1.0, -1.0)])
     after = jnp.where(policy == 2, jnp.array([1.0, -1.0]), jnp.array([1.0, 1.0]))  # release: open, slide on
     # The regrasp, from the thick target's distance alone: far from it, open fully, then move; there, close,
     # then push once closed on the 40 mm box.
-    thick = peg_x - (CENTRE_TO_SHOULDER + THICK_LEN / 2)
-    thick = jnp.maximum(thick, GRIP_X_LIMITS[0] + 0.004) - grip_x
-    regrasp = jnp.where(jnp.abs(thick) > 0.004,
-                        jnp.stack([jnp.where(opening > 0.075, jnp.clip(thick / 0.02, -1.0, 1.0), 0.0), -1.0]),
+    to_thick = thick - grip_x
+    regrasp = jnp.where(jnp.abs(to_thick) > 0.004,
+                        jnp.stack([jnp.where(opening > 0.075, jnp.clip(to_thick / 0.02, -1.0, 1.0), 0.0), -1.0]),
                         jnp.stack([jnp.where(opening < 0.045, 1.0, 0.0), 1.0]))
     after = jnp.where(policy == 4, regrasp, after)
     act = jnp.where(stage >= 1, after, grasp)

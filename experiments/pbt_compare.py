@@ -178,8 +178,8 @@ def report(args: Args, out: Path, domain: str) -> Optional[str]:
     for name, grids in (("population", pops), ("sweep", sweeps)):
         values = [g["median"] for g in grids]
         lines.append(f"| {name} | median | {mean_and_iqm(values)} | {' '.join(f'{v:.2f}' for v in values)} |")
-    autos = [grid_scores(f, args.pbt_every) for b in range(args.blocks) if args.auto_rule
-             and ((f := folder(out, domain, b, args.auto_rule)) / "summary.json").exists()]
+    autos = [grid_scores(f, args.pbt_every) for b in range(args.blocks)
+             if ((f := folder(out, domain, b, args.auto_rule)) / "summary.json").exists()] if args.auto_rule else []
     if autos:
         for which, values in (("best", [g["best"]["success"] for g in autos]), ("median", [g["median"] for g in autos])):
             if values:
