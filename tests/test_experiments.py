@@ -572,6 +572,17 @@ def test_pbt_compare_keeps_the_fittest_member_and_scores_the_sweeps_pick_on_the_
     text = pbt_compare.report(args, tmp_path, "maze2")
     assert "| population | best | 0.80 [" in text and "| 0.60 1.00 |" in text
     assert "| sweep's pick, on the other blocks' seeds | η = 0.5, 0.1 | 0.25 [" in text
+    assert "auto" not in text
+    # a grid of auto members has no starting ratio to pick: it is kept by fitness alone and read beside the others
+    args = pbt_compare.Args(scale="smoke", blocks=2, etas=(0.1, 0.5), seeds_per_block=1, out=tmp_path,
+                            auto_rule="trusted")
+    _fake_pbt_compare_block(tmp_path, args, 0, "trusted", {0: 0.0, 1: 0.7}, {0: 0.2, 1: 0.3})
+    _fake_pbt_compare_block(tmp_path, args, 1, "trusted", {0: 0.1, 1: 0.5}, {0: 0.4, 1: 0.3})
+    autos = pbt_compare.grid_scores(pbt_compare.folder(tmp_path, "maze2", 0, "trusted"), 2)
+    assert autos["picked_eta"] is None and autos["best"]["success"] == 0.7
+    text = pbt_compare.report(args, tmp_path, "maze2")
+    assert "| auto, trusted (2 blocks) | best | 0.40 [" in text and "| 0.70 0.10 |" in text
+    assert "P(population's kept member > auto's kept member), over all pairs of blocks: 0.75 [" in text
 
 
 def _fake_peg_sweep(folder: Path, finals: dict[float, tuple[float, float, float]]) -> None:
