@@ -56,3 +56,27 @@ def test_c_physics_run_resumes_bit_for_bit(tmp_path):
     assert a.env_state.pipeline_state.state.dtype == np.uint32
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
         np.testing.assert_array_equal(x, y)
+
+
+def test_critic_probe_reads_a_grip_held_run(tmp_path):
+    """experiments/peg_critic_probe.py on a one-epoch grip-held run: the scripted hand-overs land where they
+    should (thick section behind the centre, centre grasp at it) and every member gets finite critic values."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+    import peg_critic_probe
+
+    args = list(TINY)
+    args[args.index("--max-episode-steps") + 1] = "200"  # long enough for a scripted grasp to hand over
+    main(["--env", "peg", "--peg-model", "hand", "--peg-physics", "c", "--peg-grip-held", "True",
+          "--eta", "0.9", "--seeds", "2", "--total-steps", "40", "--checkpoint-every", "1",
+          "--out", str(tmp_path / "run")] + args)
+    result = peg_critic_probe.probe(tmp_path / "run", epoch=None, starts=1, seed=3)
+    assert np.mean(result["offset"]["thick"]) < -0.03 and abs(np.mean(result["offset"]["centre"])) < 0.01
+    assert [r["seed"] for r in result["members"]] == [0, 1]
+    for r in result["members"]:
+        values = [r[g][k] for g in peg_critic_probe.GRASPS for k in ("q1", "q2", "v2_after")]
+        assert np.isfinite(values).all() and r["norm_range_next"] > 0
+        assert all(r[g]["inserts"] in (0.0, 1.0) for g in peg_critic_probe.GRASPS)
+    assert "| 1 | 1 | 0.9,1 | centre |" in peg_critic_probe.table(result)
