@@ -12,6 +12,9 @@ objective C_1 = η Q̂_1 + (1 − η) Q̂_2 (docs/design.md#the-method), each al
 range of that critic (`norm.hi − norm.lo`, the scale the actor sees); at the hand-over state s', Q_2(s', π_2(s')),
 the insertion agent's own value. Then the member's insertion agent (its deterministic policy) acts from s'
 to the episode's end: its success from each grasp says whether a thick hand-over is worth more to it.
+Last, the decision itself: from the same starts the member's own first agent acts until it first commands the
+gripper closed; there, how each term, and C_1 (each term divided by its running range), would change had it
+stayed open and moved on toward the thick section.
 
 If Q_2 does not rank the thick grasp above the centre one, the first agent's cooperative term has nothing to
 follow; if it does but the first agent still grasps thin, the weight or the exploration is what fails.
@@ -35,7 +38,7 @@ from ccp_jax import checkpoint, outputs
 from ccp_jax.envs import make_env
 from ccp_jax.grid import make_grid_train
 from ccp_jax.networks import deterministic_action
-from envs_mjx.peg_in_hole import scripted_action
+from envs_mjx.peg_in_hole import CENTRE_TO_SHOULDER, OBS_SLICES, THICK_LEN, scripted_action
 
 GRASPS = {"thick": 0, "centre": 1}  # scripted_action's policies
 
@@ -77,6 +80,28 @@ def insert_from(env, state, policy, actor_params) -> float:
     return float(state.metrics["success"])
 
 
+def decision_points(env, policy, actor_params, starts: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Where the member's own first agent (deterministic) first commands the gripper closed, per start that gets
+    there: its obs [K, o], its action [K, a], and the other choice there [K, a]: stay open and move toward the
+    thick section at full speed."""
+    reset, step = jax.jit(env.reset), jax.jit(env.step)
+    obs, own, other = [], [], []
+    for k in range(starts):
+        state = reset(jax.random.PRNGKey(seed + k))
+        for _ in range(env.episode_length):
+            mean, _ = policy(actor_params, state.obs[None])
+            action = np.asarray(deterministic_action(mean)[0])
+            if action[1] > 0 or int(state.info["stage"]) >= 1 or float(state.done):
+                break
+            state = step(state, action)
+        if action[1] > 0 and int(state.info["stage"]) == 0:
+            o = np.asarray(state.obs)
+            thick = o[OBS_SLICES["peg_pos"]][0] - (CENTRE_TO_SHOULDER + THICK_LEN / 2)
+            obs.append(o), own.append(action)
+            other.append(np.array([np.sign(thick - o[OBS_SLICES["grip_pos"]][0]), -1.0], np.float32))
+    return np.array(obs), np.array(own), np.array(other)
+
+
 def probe(run_dir: Path, epoch: Optional[int], starts: int, seed: int) -> dict:
     config = outputs.read_config(run_dir)
     if config.task.env != "peg" or config.num_agents != 2:
@@ -111,6 +136,18 @@ def probe(run_dir: Path, epoch: Optional[int], starts: int, seed: int) -> dict:
                           v2_after=float(q(take(agents.critic, 1), after, deterministic_action(mean)).mean()),
                           inserts=float(np.mean([insert_from(env, s, policy, take(agents.actor, 1))
                                                  for s in data["states"]])))
+        obs, own, other = decision_points(env, policy, take(agents.actor, 0), starts, seed)
+        if len(obs):
+            grip = obs[:, OBS_SLICES["grip_pos"]][:, 0] - obs[:, OBS_SLICES["peg_pos"]][:, 0]
+            gaps = [q(take(agents.critic, n), jnp.asarray(obs), jnp.asarray(other))
+                    - q(take(agents.critic, n), jnp.asarray(obs), jnp.asarray(own)) for n in (0, 1)]
+            own_term, next_term = float(np.mean(gaps[0] / span[0, 0])), float(np.mean(gaps[1] / span[0, 1]))
+            row["decision"] = dict(closes=len(obs), grip_from_centre=float(grip.mean()),
+                                   gain_q1=float(gaps[0].mean()), gain_q2=float(gaps[1].mean()),
+                                   gain_c=eta[0] * own_term + (1 - eta[0]) * next_term,
+                                   # the ratio at which the two terms cancel: below it, moving on wins
+                                   balance_eta=(next_term / (next_term - own_term)
+                                                if next_term > 0 > own_term else None))
         result["members"].append(row)
     return result
 
@@ -127,6 +164,17 @@ def table(result: dict) -> str:
             lines.append(f"| {r['member']} | {r['seed']} | {outputs.eta_text(r['eta'])} | {g} | {v['q1']:.2f} | "
                          f"{v['q2']:.2f} | {v['q2'] / max(r['norm_range_next'], 1e-6):.3f} | {v['v2_after']:.2f} | "
                          f"{v['inserts']:.2f} |")
+    lines += ["", "Where the member's own first agent first closes the gripper: the change in each term of its "
+              "objective if it stayed open and moved on toward the thick section instead (C_1 in the "
+              "normaliser's running ranges; negative: closing there is what the objective prefers).", "",
+              "| member | seed | starts that close | grip from the centre | ΔQ_1 | ΔQ_2 | ΔC_1 | η below which moving "
+              "on wins |", "|---|---|---|---|---|---|---|---|"]
+    for r in result["members"]:
+        d = r.get("decision")
+        balance = "–" if d is None or d["balance_eta"] is None else f"{d['balance_eta']:.2f}"
+        lines.append(f"| {r['member']} | {r['seed']} | " + ("0 | | | | | |" if d is None else
+                     f"{d['closes']} | {d['grip_from_centre']:+.3f} m | {d['gain_q1']:+.2f} | {d['gain_q2']:+.2f} | "
+                     f"{d['gain_c']:+.3f} | {balance} |"))
     return "\n".join(lines)
 
 

@@ -79,4 +79,6 @@ def test_critic_probe_reads_a_grip_held_run(tmp_path):
         values = [r[g][k] for g in peg_critic_probe.GRASPS for k in ("q1", "q2", "v2_after")]
         assert np.isfinite(values).all() and r["norm_range_next"] > 0
         assert all(r[g]["inserts"] in (0.0, 1.0) for g in peg_critic_probe.GRASPS)
+        if "decision" in r:  # the untrained first agent closed the gripper somewhere before a hand-over
+            assert r["decision"]["closes"] == 1 and np.isfinite(r["decision"]["gain_c"])
     assert "| 1 | 1 | 0.9,1 | centre |" in peg_critic_probe.table(result)
