@@ -19,8 +19,11 @@ not the paper's task: no regrasp, so the first agent's grasp decides; docs/peg.m
 Each cell is one vmapped grid in OUT/<cell>/ with a checkpoint every 25 epochs: run the same command again to
 resume a stopped one (finished ones are skipped). When a grid finishes, its last checkpoint is evaluated again on
 `FINAL_EPISODES` deterministic episodes per member (`ccp_jax.evaluate`, written to final_eval.json; these carry
-`hold_thick`, which shows an insertion agent that regrasps) and each member's final policy is exported
-(policies/, `ccp_jax.export`), then the checkpoints (the buffers: gigabytes) are deleted; its metrics are compacted (metrics.jsonl.gz) and the folder is what to commit.
+`hold_thick`, which shows an insertion agent that regrasps), again with training's action noise
+(stochastic_eval.json: does exploration ever hand over on the thick section), probed for what its critics say
+of the grasp (critic_probe.json, experiments/peg_critic_probe.py, cells with two agents), and each member's final
+policy is exported (policies/, `ccp_jax.export`); then the checkpoints (the buffers: gigabytes) are deleted.
+Its metrics are compacted (metrics.jsonl.gz) and the folder is what to commit.
 
 The report (OUT/table.md, OUT/curves.png): per cell, final success with mean and IQM and 95 % stratified-bootstrap
 intervals; the final hand-over rate (evaluation episodes that reached stage 2) and where those grasps hold the
@@ -51,6 +54,9 @@ BUFFER_SIZE = 1_000_000
 WINDOW = outputs.FINAL_WINDOW  # epochs in a final value (the paper's final success)
 FINAL_EPISODES = 50  # per member, in the final evaluation of the last checkpoint
 FINAL_EVAL = "final_eval.json"
+STOCHASTIC_EVAL = "stochastic_eval.json"  # the same episodes with training's action noise
+CRITIC_PROBE = "critic_probe.json"  # experiments/peg_critic_probe.py on the last checkpoint (two-agent cells)
+PROBE_STARTS, PROBE_SEED = 8, 200
 
 
 @dataclasses.dataclass(frozen=True)
@@ -126,11 +132,15 @@ def best_cell(out: Path) -> Optional[Cell]:
     return Cell(f"csac_{eta:g}", "csac", ((eta,),))
 
 
-def final_evaluation(folder: Path, episodes: int = FINAL_EPISODES) -> Optional[list[dict]]:
+def final_evaluation(folder: Path, episodes: int = FINAL_EPISODES, probe_starts: int = PROBE_STARTS
+                     ) -> Optional[list[dict]]:
     """`ccp_jax.evaluate`'s rows for a finished grid's last checkpoint (start states of seed 1, not the training
-    evaluations' 0), kept in FOLDER/final_eval.json; each member's final policy is kept as a `ccp_jax.export`
-    artefact (FOLDER/policies/member<K>.jaxexport, for looking at its episodes later); then the checkpoints are
-    deleted. None where the grid has not finished, or finished without checkpoints and without that file."""
+    evaluations' 0), kept in FOLDER/final_eval.json; the same with action noise (stochastic_eval.json) and, with
+    two agents, `peg_critic_probe.probe` (critic_probe.json); each member's final policy is kept as a
+    `ccp_jax.export` artefact (FOLDER/policies/member<K>.jaxexport, for looking at its episodes later); then the
+    checkpoints are deleted. None where the grid has not finished, or finished without checkpoints and without
+    that file."""
+    import peg_critic_probe
     from ccp_jax import export
     from ccp_jax.evaluate import evaluate_run
 
@@ -140,6 +150,9 @@ def final_evaluation(folder: Path, episodes: int = FINAL_EPISODES) -> Optional[l
     if not (folder / "summary.json").exists() or not (folder / "checkpoints").is_dir():
         return None
     rows = evaluate_run(folder, episodes=episodes, seed=1)
+    outputs.write_json(folder / STOCHASTIC_EVAL, evaluate_run(folder, episodes=episodes, stochastic=True, seed=1))
+    if outputs.read_config(folder).num_agents == 2:
+        outputs.write_json(folder / CRITIC_PROBE, peg_critic_probe.probe(folder, None, probe_starts, PROBE_SEED))
     for member in range(len(rows)):
         exported, meta = export.export_chain(folder, member, platforms=("cpu",))
         export.write(exported, {**meta, "run_dir": folder.name}, folder / "policies" / f"member{member}.jaxexport")
@@ -211,6 +224,30 @@ def final_table(found: dict[str, list[dict]]) -> list[str]:
     return lines
 
 
+def probe_table(found: dict[str, tuple[dict, list[dict]]]) -> list[str]:
+    """Per cell (`peg_critic_probe.probe`'s result, the stochastic evaluation's rows), per seed: whether the
+    insertion agent inserts from the scripted thick and centre hand-overs, its value after each, where the first
+    agent closes, what moving on would do to its objective, and the thick hand-overs of the noisy episodes."""
+    if not found:
+        return []
+    lines = ["", "What the critics say of the grasp (`experiments/peg_critic_probe.py` on the checkpoint of the epoch "
+                 "shown, scripted hand-overs from 8 start states; docs/peg.md#why-the-first-agent-grasps-thin): "
+                 "the insertion agent's success and value Q_2(s', π_2) after a thick / centre hand-over; where the "
+                 "first agent first closes the gripper (from the peg's centre) and the change in its objective C_1 "
+                 "had it moved on toward the thick section; thick hand-overs among the stochastic episodes.", "",
+             "| method | epoch | seeds | inserts from thick / centre | Q_2 after thick / centre | closes at | "
+             "ΔC_1 of moving on | noisy thick hand-overs |", "|---|---|---|---|---|---|---|---|"]
+    for name, (probe, noisy) in found.items():
+        members = probe["members"]
+        per_seed = lambda f: " ".join(f(m) for m in members)
+        pair = lambda key: per_seed(lambda m: f"{m['thick'][key]:.2f}/{m['centre'][key]:.2f}")
+        decision = lambda key, fmt: per_seed(lambda m: format(m["decision"][key], fmt) if "decision" in m else "–")
+        lines.append(f"| {label(name)} | {probe['epoch']} | {per_seed(lambda m: str(m['seed']))} | {pair('inserts')} "
+                     f"| {pair('v2_after')} | {decision('grip_from_centre', '+.3f')} | {decision('gain_c', '+.3f')} | "
+                     f"{' '.join(format(r['eval_end']['grasp_thick'], '.2f') for r in noisy)} |")
+    return lines
+
+
 def report(out: Path) -> str:
     found = {cell.name: curves(out / cell.name) for cell in QUEUE[:-1] + tuple(filter(None, [best_cell(out)])) + HELD
              if (out / cell.name / "config.json").exists()}
@@ -246,6 +283,8 @@ def report(out: Path) -> str:
                                                        for m in ("success", "handover", "grasp_thick")) + " |")
     lines += final_table({name: read_json(out / name / FINAL_EVAL) for name in found
                           if (out / name / FINAL_EVAL).exists()})
+    lines += probe_table({name: (read_json(out / name / CRITIC_PROBE), read_json(out / name / STOCHASTIC_EVAL))
+                          for name in found if (out / name / CRITIC_PROBE).exists()})
     text = "\n".join(lines) + "\n"
     write_text(out / "table.md", text)
     figure(found, out / "curves.png")

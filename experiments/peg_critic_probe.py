@@ -120,7 +120,7 @@ def probe(run_dir: Path, epoch: Optional[int], starts: int, seed: int) -> dict:
     q = jax.jit(lambda p, o, a: jnp.min(critic.apply(p, o, a), axis=0))
     policy = jax.jit(actor.apply)
     grasps = hand_overs(env, starts, seed)
-    result = dict(run=str(run_dir), epoch=int(epoch), starts=starts, seed=seed,
+    result = dict(run=run_dir.name, epoch=int(epoch), starts=starts, seed=seed,
                   offset={g: grasps[g]["offset"].tolist() for g in GRASPS}, members=[])
     for m, (eta, member_seed) in enumerate(config.members):
         take = lambda tree, n: jax.tree.map(lambda x: x[m, n], tree)

@@ -58,13 +58,15 @@ def test_c_physics_run_resumes_bit_for_bit(tmp_path):
         np.testing.assert_array_equal(x, y)
 
 
-def test_critic_probe_reads_a_grip_held_run(tmp_path):
+def test_critic_probe_and_the_final_evaluation_of_a_grip_held_run(tmp_path):
     """experiments/peg_critic_probe.py on a one-epoch grip-held run: the scripted hand-overs land where they
-    should (thick section behind the centre, centre grasp at it) and every member gets finite critic values."""
+    should (thick section behind the centre, centre grasp at it) and every member gets finite critic values; then
+    peg_budget's final evaluation writes its files, tables the probe and deletes the checkpoints."""
     import sys
     from pathlib import Path
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
+    import peg_budget
     import peg_critic_probe
 
     args = list(TINY)
@@ -82,3 +84,14 @@ def test_critic_probe_reads_a_grip_held_run(tmp_path):
         if "decision" in r:  # the untrained first agent closed the gripper somewhere before a hand-over
             assert r["decision"]["closes"] == 1 and np.isfinite(r["decision"]["gain_c"])
     assert "| 1 | 1 | 0.9,1 | centre |" in peg_critic_probe.table(result)
+
+    run = tmp_path / "run"
+    rows = peg_budget.final_evaluation(run, episodes=2, probe_starts=1)
+    assert [r["episodes"] for r in rows] == [2, 2] and not (run / "checkpoints").exists()
+    noisy = json.loads((run / peg_budget.STOCHASTIC_EVAL).read_text())
+    assert [r["stochastic"] for r in noisy] == [True, True]
+    probe = json.loads((run / peg_budget.CRITIC_PROBE).read_text())
+    assert probe["run"] == "run" and probe["epoch"] == 1 and probe["seed"] == peg_budget.PROBE_SEED
+    line = peg_budget.probe_table({"csac_0.9_held": (probe, noisy)})[-1]
+    assert line.startswith("| CSAC η = 0.9, grip held | 1 | 0 1 | ")
+    assert sorted(p.name for p in (run / "policies").iterdir())[:2] == ["member0.jaxexport", "member0.json"]
