@@ -230,20 +230,25 @@ def probe_table(found: dict[str, tuple[dict, list[dict]]]) -> list[str]:
     agent closes, what moving on would do to its objective, and the thick hand-overs of the noisy episodes."""
     if not found:
         return []
+    starts = sorted({probe["starts"] for probe, _ in found.values()})
     lines = ["", "What the critics say of the grasp (`experiments/peg_critic_probe.py` on the checkpoint of the epoch "
-                 "shown, scripted hand-overs from 8 start states; docs/peg.md#why-the-first-agent-grasps-thin): "
-                 "the insertion agent's success and value Q_2(s', π_2) after a thick / centre hand-over; where the "
-                 "first agent first closes the gripper (from the peg's centre) and the change in its objective C_1 "
-                 "had it moved on toward the thick section; thick hand-overs among the stochastic episodes.", "",
+                 f"shown, scripted hand-overs from {'/'.join(map(str, starts))} start states; "
+                 "docs/peg.md#why-the-first-agent-grasps-thin): the insertion agent's success and value Q_2(s', π_2) "
+                 "after a thick / centre hand-over; where the first agent first closes the gripper (from the peg's "
+                 "centre) and the change in its own critic, and in CSAC's objective C_1, had it moved on toward the "
+                 "thick section; thick hand-overs among the stochastic episodes.", "",
              "| method | epoch | seeds | inserts from thick / centre | Q_2 after thick / centre | closes at | "
-             "ΔC_1 of moving on | noisy thick hand-overs |", "|---|---|---|---|---|---|---|---|"]
+             "ΔQ_1 of moving on | ΔC_1 of moving on | noisy thick hand-overs |",
+             "|---|---|---|---|---|---|---|---|---|"]
     for name, (probe, noisy) in found.items():
         members = probe["members"]
         per_seed = lambda f: " ".join(f(m) for m in members)
         pair = lambda key: per_seed(lambda m: f"{m['thick'][key]:.2f}/{m['centre'][key]:.2f}")
-        decision = lambda key, fmt: per_seed(lambda m: format(m["decision"][key], fmt) if "decision" in m else "–")
+        decision = lambda key, fmt: per_seed(lambda m: "–" if m.get("decision", {}).get(key) is None
+                                             else format(m["decision"][key], fmt))
         lines.append(f"| {label(name)} | {probe['epoch']} | {per_seed(lambda m: str(m['seed']))} | {pair('inserts')} "
-                     f"| {pair('v2_after')} | {decision('grip_from_centre', '+.3f')} | {decision('gain_c', '+.3f')} | "
+                     f"| {pair('v2_after')} | {decision('grip_from_centre', '+.3f')} | {decision('gain_q1', '+.2f')} | "
+                     f"{decision('gain_c', '+.3f')} | "
                      f"{' '.join(format(r['eval_end']['grasp_thick'], '.2f') for r in noisy)} |")
     return lines
 

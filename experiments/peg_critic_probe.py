@@ -13,8 +13,8 @@ range of that critic (`norm.hi − norm.lo`, the scale the actor sees); at the h
 the insertion agent's own value. Then the member's insertion agent (its deterministic policy) acts from s'
 to the episode's end: its success from each grasp says whether a thick hand-over is worth more to it.
 Last, the decision itself: from the same starts the member's own first agent acts until it first commands the
-gripper closed; there, how each term, and C_1 (each term divided by its running range), would change had it
-stayed open and moved on toward the thick section.
+gripper closed; there, how each term, and C_1 (each term divided by its running range; CSAC only), would change
+had it stayed open and moved on toward the thick section.
 
 If Q_2 does not rank the thick grasp above the centre one, the first agent's cooperative term has nothing to
 follow; if it does but the first agent still grasps thin, the weight or the exploration is what fails.
@@ -117,6 +117,7 @@ def probe(run_dir: Path, epoch: Optional[int], starts: int, seed: int) -> dict:
     agents = jax.device_get(state.agents)
     del state  # the buffers
     critic, actor = trainer.networks.critic, trainer.networks.actor
+    cooperative = config.algo == "csac"
     q = jax.jit(lambda p, o, a: jnp.min(critic.apply(p, o, a), axis=0))
     policy = jax.jit(actor.apply)
     grasps = hand_overs(env, starts, seed)
@@ -144,10 +145,12 @@ def probe(run_dir: Path, epoch: Optional[int], starts: int, seed: int) -> dict:
             own_term, next_term = float(np.mean(gaps[0] / span[0, 0])), float(np.mean(gaps[1] / span[0, 1]))
             row["decision"] = dict(closes=len(obs), grip_from_centre=float(grip.mean()),
                                    gain_q1=float(gaps[0].mean()), gain_q2=float(gaps[1].mean()),
-                                   gain_c=eta[0] * own_term + (1 - eta[0]) * next_term,
-                                   # the ratio at which the two terms cancel: below it, moving on wins
-                                   balance_eta=(next_term / (next_term - own_term)
-                                                if next_term > 0 > own_term else None))
+                                   gain_c=None, balance_eta=None)
+            if cooperative:  # Naive's actor maximises plain Q_1 and has no normaliser: ΔQ_1 says it all
+                row["decision"].update(gain_c=eta[0] * own_term + (1 - eta[0]) * next_term,
+                                       # the ratio at which the two terms cancel: below it, moving on wins
+                                       balance_eta=next_term / (next_term - own_term) if next_term > 0 > own_term
+                                       else None)
         result["members"].append(row)
     return result
 
@@ -171,10 +174,10 @@ def table(result: dict) -> str:
               "on wins |", "|---|---|---|---|---|---|---|---|"]
     for r in result["members"]:
         d = r.get("decision")
-        balance = "–" if d is None or d["balance_eta"] is None else f"{d['balance_eta']:.2f}"
+        maybe = lambda key, fmt: "–" if d is None or d[key] is None else format(d[key], fmt)
         lines.append(f"| {r['member']} | {r['seed']} | " + ("0 | | | | | |" if d is None else
                      f"{d['closes']} | {d['grip_from_centre']:+.3f} m | {d['gain_q1']:+.2f} | {d['gain_q2']:+.2f} | "
-                     f"{d['gain_c']:+.3f} | {balance} |"))
+                     f"{maybe('gain_c', '+.3f')} | {maybe('balance_eta', '.2f')} |"))
     return "\n".join(lines)
 
 

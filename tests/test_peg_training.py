@@ -82,7 +82,7 @@ def test_critic_probe_and_the_final_evaluation_of_a_grip_held_run(tmp_path):
         assert np.isfinite(values).all() and r["norm_range_next"] > 0
         assert all(r[g]["inserts"] in (0.0, 1.0) for g in peg_critic_probe.GRASPS)
         if "decision" in r:  # the untrained first agent closed the gripper somewhere before a hand-over
-            assert r["decision"]["closes"] == 1 and np.isfinite(r["decision"]["gain_c"])
+            assert r["decision"]["closes"] == 1 and np.isfinite(r["decision"]["gain_c"])  # CSAC: its objective
     assert "| 1 | 1 | 0.9,1 | centre |" in peg_critic_probe.table(result)
 
     run = tmp_path / "run"
@@ -94,4 +94,10 @@ def test_critic_probe_and_the_final_evaluation_of_a_grip_held_run(tmp_path):
     assert probe["run"] == "run" and probe["epoch"] == 1 and probe["seed"] == peg_budget.PROBE_SEED
     line = peg_budget.probe_table({"csac_0.9_held": (probe, noisy)})[-1]
     assert line.startswith("| CSAC η = 0.9, grip held | 1 | 0 1 | ")
+    naive = dict(closes=1, grip_from_centre=0.08, gain_q1=-0.3, gain_q2=0.0, gain_c=None, balance_eta=None)
+    probe["members"] = [{**m, "decision": naive} for m in probe["members"]]  # no cooperative objective
+    thick = " ".join(f"{r['eval_end']['grasp_thick']:.2f}" for r in noisy)
+    assert peg_budget.probe_table({"naive_held": (probe, noisy)})[-1].endswith(
+        f"| +0.080 +0.080 | -0.30 -0.30 | – – | {thick} |")
+    assert "| – | – |" in peg_critic_probe.table(probe)
     assert sorted(p.name for p in (run / "policies").iterdir())[:2] == ["member0.jaxexport", "member0.json"]
