@@ -59,7 +59,9 @@ def hand_overs(env, starts: int, seed: int) -> dict[str, dict]:
                 nxt = step(state, action)
                 if int(nxt.info["stage"]) >= 1:
                     ro = env.readout(nxt.pipeline_state)
-                    obs.append(np.asarray(state.obs)), acts.append(np.asarray(action)), states.append(nxt)
+                    obs.append(np.asarray(state.obs))
+                    acts.append(np.asarray(action))
+                    states.append(nxt)
                     offsets.append(float(ro.grip_pos[0] - ro.peg_pos[0]))
                     break
                 if float(nxt.done):
@@ -97,12 +99,17 @@ def decision_points(env, policy, actor_params, starts: int, seed: int) -> tuple[
         if action[1] > 0 and int(state.info["stage"]) == 0:
             o = np.asarray(state.obs)
             thick = o[OBS_SLICES["peg_pos"]][0] - (CENTRE_TO_SHOULDER + THICK_LEN / 2)
-            obs.append(o), own.append(action)
+            obs.append(o)
+            own.append(action)
             other.append(np.array([np.sign(thick - o[OBS_SLICES["grip_pos"]][0]), -1.0], np.float32))
     return np.array(obs), np.array(own), np.array(other)
 
 
 def probe(run_dir: Path, epoch: Optional[int], starts: int, seed: int) -> dict:
+    """The module's measurements on RUN_DIR's checkpoint (the latest unless `epoch`): run, epoch, starts, seed,
+    each grasp's hand-over offsets, and per member (seed, eta, the first agent's normaliser ranges) per grasp
+    q1, q2 (at the last grasping step), v2_after and inserts, and `decision` (where its first agent closes: closes,
+    grip_from_centre, gain_q1, gain_q2, and for CSAC gain_c and balance_eta; absent if it never closes)."""
     config = outputs.read_config(run_dir)
     if config.task.env != "peg" or config.num_agents != 2:
         raise SystemExit("error: run_dir: a CSAC or Naive peg run (two agents) is needed")
