@@ -605,6 +605,17 @@ def grasp_metrics(stage: jax.Array, offset: jax.Array, holding: jax.Array, now: 
 
 
 # ----- scripted controllers (tests, benchmarks) ------------------------------------------
+def reachable_grip_x(x: jax.Array) -> jax.Array:
+    """``x``, or the gripper's backmost reachable x where ``x`` lies behind it."""
+    return jnp.maximum(x, GRIP_X_LIMITS[0] + 0.004)
+
+
+def thick_grasp_x(peg_x: jax.Array) -> jax.Array:
+    """The grip point's x for a grasp in the middle of the thick section (0.05 m behind the peg centre at
+    ``peg_x``), or as far back as the gripper reaches, which always leaves >= 15 mm of box to hold."""
+    return reachable_grip_x(peg_x - (CENTRE_TO_SHOULDER + THICK_LEN / 2))
+
+
 def scripted_action(state: State, policy: jax.Array, key: jax.Array) -> jax.Array:
     """A scripted controller's action, float32[2], pure JAX (vmap over ``policy`` to mix them).
 
@@ -619,9 +630,8 @@ def scripted_action(state: State, policy: jax.Array, key: jax.Array) -> jax.Arra
     o, stage = state.obs, state.info["stage"]
     grip_x, peg_x = o[OBS_SLICES["grip_pos"]][0], o[OBS_SLICES["peg_pos"]][0]
     opening = o[OBS_SLICES["finger_opening"]][0]
-    reachable = lambda x: jnp.maximum(x, GRIP_X_LIMITS[0] + 0.004)
-    thick = reachable(peg_x - (CENTRE_TO_SHOULDER + THICK_LEN / 2))
-    target = jnp.where((policy == 1) | (policy == 4), reachable(peg_x), thick)
+    thick = thick_grasp_x(peg_x)
+    target = jnp.where((policy == 1) | (policy == 4), reachable_grip_x(peg_x), thick)
     err = target - grip_x
     closing = (jnp.abs(err) < 0.003) | (opening < 0.075)
     grasp = jnp.stack([jnp.where(closing, 0.0, jnp.clip(err / 0.02, -1.0, 1.0)), jnp.where(closing, 1.0, -1.0)])

@@ -38,15 +38,15 @@ from ccp_jax import checkpoint, outputs
 from ccp_jax.envs import make_env
 from ccp_jax.grid import make_grid_train
 from ccp_jax.networks import deterministic_action
-from envs_mjx.peg_in_hole import CENTRE_TO_SHOULDER, OBS_SLICES, THICK_LEN, scripted_action
+from envs_mjx.peg_in_hole import OBS_SLICES, scripted_action, thick_grasp_x
 
 GRASPS = {"thick": 0, "centre": 1}  # scripted_action's policies
 
 
-def hand_overs(env, starts: int, seed: int) -> dict[str, dict]:
+def hand_overs(env, reset, step, starts: int, seed: int) -> dict[str, dict]:
     """Per grasp: the last grasping step's obs and action [K, ...], the hand-over states (brax States, a list)
-    and the grip point's x from the peg's centre at the hand-over [K]; starts that never hand over are dropped."""
-    reset, step = jax.jit(env.reset), jax.jit(env.step)
+    and the grip point's x from the peg's centre at the hand-over [K]; starts that never hand over are dropped.
+    `reset` and `step` are `env`'s, jitted once by the caller (as in the functions below)."""
     act = jax.jit(scripted_action)
     out = {}
     for name, policy in GRASPS.items():
@@ -71,9 +71,8 @@ def hand_overs(env, starts: int, seed: int) -> dict[str, dict]:
     return out
 
 
-def insert_from(env, state, policy, actor_params) -> float:
+def insert_from(env, step, state, policy, actor_params) -> float:
     """Success of the insertion agent's deterministic policy acting from the hand-over `state` to the end."""
-    step = jax.jit(env.step)
     for _ in range(env.episode_length):
         if float(state.done):
             break
@@ -82,11 +81,11 @@ def insert_from(env, state, policy, actor_params) -> float:
     return float(state.metrics["success"])
 
 
-def decision_points(env, policy, actor_params, starts: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def decision_points(env, reset, step, policy, actor_params, starts: int, seed: int
+                    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Where the member's own first agent (deterministic) first commands the gripper closed, per start that gets
     there: its obs [K, o], its action [K, a], and the other choice there [K, a]: stay open and move toward the
     thick section at full speed."""
-    reset, step = jax.jit(env.reset), jax.jit(env.step)
     obs, own, other = [], [], []
     for k in range(starts):
         state = reset(jax.random.PRNGKey(seed + k))
@@ -98,7 +97,7 @@ def decision_points(env, policy, actor_params, starts: int, seed: int) -> tuple[
             state = step(state, action)
         if action[1] > 0 and int(state.info["stage"]) == 0:
             o = np.asarray(state.obs)
-            thick = o[OBS_SLICES["peg_pos"]][0] - (CENTRE_TO_SHOULDER + THICK_LEN / 2)
+            thick = float(thick_grasp_x(o[OBS_SLICES["peg_pos"]][0]))
             obs.append(o)
             own.append(action)
             other.append(np.array([np.sign(thick - o[OBS_SLICES["grip_pos"]][0]), -1.0], np.float32))
@@ -127,7 +126,8 @@ def probe(run_dir: Path, epoch: Optional[int], starts: int, seed: int) -> dict:
     cooperative = config.algo == "csac"
     q = jax.jit(lambda p, o, a: jnp.min(critic.apply(p, o, a), axis=0))
     policy = jax.jit(actor.apply)
-    grasps = hand_overs(env, starts, seed)
+    reset, step = jax.jit(env.reset), jax.jit(env.step)
+    grasps = hand_overs(env, reset, step, starts, seed)
     result = dict(run=run_dir.name, epoch=int(epoch), starts=starts, seed=seed,
                   offset={g: grasps[g]["offset"].tolist() for g in GRASPS}, members=[])
     for m, (eta, member_seed) in enumerate(config.members):
@@ -142,9 +142,9 @@ def probe(run_dir: Path, epoch: Optional[int], starts: int, seed: int) -> dict:
             row[g] = dict(q1=float(q(take(agents.critic, 0), obs, act).mean()),
                           q2=float(q(take(agents.critic, 1), obs, act).mean()),
                           v2_after=float(q(take(agents.critic, 1), after, deterministic_action(mean)).mean()),
-                          inserts=float(np.mean([insert_from(env, s, policy, take(agents.actor, 1))
+                          inserts=float(np.mean([insert_from(env, step, s, policy, take(agents.actor, 1))
                                                  for s in data["states"]])))
-        obs, own, other = decision_points(env, policy, take(agents.actor, 0), starts, seed)
+        obs, own, other = decision_points(env, reset, step, policy, take(agents.actor, 0), starts, seed)
         if len(obs):
             grip = obs[:, OBS_SLICES["grip_pos"]][:, 0] - obs[:, OBS_SLICES["peg_pos"]][:, 0]
             gaps = [q(take(agents.critic, n), jnp.asarray(obs), jnp.asarray(other))
