@@ -50,7 +50,7 @@ VERSION = 2
 # load, plot and compare, while `Config.check_trainable` refuses to train or resume it.
 RETIRED_SETTINGS: dict[str, tuple[str, Any]] = {"eta_auto_up_rate": ("ablations", None),
                                                 "eta_auto_floor_step": ("ablations", 0.0)}
-RETIRED_VALUES: dict[str, tuple[Any, ...]] = {"eta_auto_rule": ("outcomes",)}
+RETIRED_VALUES: dict[str, tuple[Any, ...]] = {"eta_auto_rule": ("outcomes", "gated")}
 
 
 class ConfigError(ValueError):
@@ -236,14 +236,14 @@ class Ccp:
     """Rate of every critic's running (EMA) min and max: the ranges the ranges rule of --eta auto reads, and the
     bounds of --normaliser ema."""
     eta_auto_rule: EtaAutoRule = "ranges"
-    """What --eta auto follows: ranges (the appendix's η* of the critics' running ranges); or, once per epoch,
-    from where the training episodes failed: gated (η_n moves up with those failing in stage n until stage n + 1
-    has seen a success, then down with those failing in stage n + 1) or trusted (both moves before that success,
-    η at least mid-range; only the downward one after). docs/design.md#the-method."""
+    """What --eta auto follows: ranges (the appendix's η* of the critics' running ranges), or trusted: once per
+    epoch, from where the training episodes failed (until stage n + 1 has seen a success, η_n moves up with those
+    failing in stage n and down with those failing in stage n + 1, at least mid-range; after it, only down).
+    docs/design.md#the-method."""
     eta_auto_range: tuple[float, float] = (0.05, 0.95)
     """--eta auto: the interval the ratio stays in."""
     eta_auto_rate: float = 0.05
-    """--eta auto under the gated and trusted rules: η's largest move per epoch."""
+    """--eta auto under the trusted rule: η's largest move per epoch."""
     pbt_every: int = 0
     """Population-based training of the ratios (docs/pbt.md): every K epochs the grid's members are ranked by the
     fitness of their training episodes since the last ranking, and each of the bottom pbt_fraction copies the

@@ -6,11 +6,11 @@ Agent n's actor maximises C_n = η_n Q̂_n + (1 − η_n) Q̂_{n+1} (Eq. (3) of 
   (the paper's independent ratios); the last agent has no next critic and uses η = 1 (`per_agent`);
 - "auto" (`AUTO`), estimated while training by one of the rules of `EtaAutoRule`:
   "ranges": η* of the critics' running ranges (Eq. (25), `eta_star`), clipped to `eta_auto_range`, inside
-  every update (`actor_eta`); "gated" and "trusted": once per epoch, from where the training episodes
-  failed (`outcome_eta`), starting at the middle of `eta_auto_range` (`initial_auto`).
+  every update (`actor_eta`); "trusted": once per epoch, from where the training episodes failed
+  (`outcome_eta`), starting at the middle of `eta_auto_range` (`initial_auto`).
 
 The grid carries a run's ratios as float32[G, N] with "auto" as NaN (`grid_etas`); the epoch replaces the
-NaNs of the outcome rules by their current ratios (`epoch_eta`), the update those of "ranges" (`actor_eta`).
+NaNs of the outcome rule by its current ratios (`epoch_eta`), the update those of "ranges" (`actor_eta`).
 docs/design.md#the-method states η* and the rules.
 
 `Config` parses its ratios here and must load without JAX (`python -m ccp_jax.plot` does not start
@@ -30,9 +30,9 @@ if TYPE_CHECKING:
     from ccp_jax.config import Config
 
 AUTO = "auto"  # a ratio estimated during training, see `EtaAutoRule`
-EtaAutoRule = Literal["ranges", "gated", "trusted"]
-ETA_AUTO_RULES = ("ranges", "gated", "trusted")
-OUTCOME_RULES = ("gated", "trusted")  # the rules `outcome_eta` moves, once per epoch from where episodes failed
+EtaAutoRule = Literal["ranges", "trusted"]
+ETA_AUTO_RULES = ("ranges", "trusted")
+OUTCOME_RULES = ("trusted",)  # the rules `outcome_eta` moves, once per epoch from where episodes failed
 Ratio = float | str  # a number in [0, 1] or AUTO
 
 
@@ -104,14 +104,14 @@ def actor_eta(eta: jax.Array, running_own: jax.Array, running_next: jax.Array, c
 # ------------------------------------------------------------- in the epoch
 
 def initial_auto(config: Config) -> jax.Array:
-    """The outcome rules' ratios before the first epoch, float32[N]: the middle of `eta_auto_range`."""
+    """The outcome rule's ratios before the first epoch, float32[N]: the middle of `eta_auto_range`."""
     import jax.numpy as jnp
 
     return jnp.full((config.num_agents,), sum(config.ccp.eta_auto_range) / 2, jnp.float32)
 
 
 def epoch_eta(eta: jax.Array, eta_auto: jax.Array, config: Config) -> jax.Array:
-    """The ratios an epoch trains with, float32[N]: under an outcome rule "auto" members (NaN) take `eta_auto`,
+    """The ratios an epoch trains with, float32[N]: under the outcome rule "auto" members (NaN) take `eta_auto`,
     so the learner sees numbers; under "ranges" the NaNs stay for the update to resolve (`actor_eta`)."""
     import jax.numpy as jnp
 
@@ -153,7 +153,7 @@ def successor_succeeded(stages: jax.Array, successes: jax.Array, num_agents: int
 
 def outcome_eta(eta: jax.Array, stages: jax.Array, successes: jax.Array, rate: float,
                 bounds: tuple[float, float], rule: EtaAutoRule, gate: jax.Array) -> jax.Array:
-    """One epoch's move of `--eta auto`'s outcome rule `rule` ("gated" or "trusted"): eta float32[N] -> float32[N].
+    """One epoch's move of `--eta auto`'s outcome rule `rule` ("trusted"): eta float32[N] -> float32[N].
 
     stages float32[N]: how many of the epoch's ended training episodes reached each stage; successes
     float32[]: how many succeeded; gate bool[N]: `successor_succeeded`, accumulated over epochs. Of the
@@ -164,12 +164,11 @@ def outcome_eta(eta: jax.Array, stages: jax.Array, successes: jax.Array, rate: f
     (The last agent's entry moves too but is never used.)
 
     Which terms apply depends on the gate. Once it is True (stage n + 1 has succeeded at least once), only
-    the downward term, for both rules. Before, "gated" applies only the upward term: failures after a
-    handover say that stage n + 1 is not learnt yet, not that the handover is bad (peg's insertions at the
-    CPU budget). "trusted" applies both but holds η_n at or above the middle of `bounds`: a successor that
+    the downward term. Before, both, but η_n is held at or above the middle of `bounds`: a successor that
     has never succeeded is not weighed above the agent's own critic, and an agent that passes its own stage
     every time drifts back to even weighting instead of staying where its early failures pushed it (4 rooms:
-    the third agent at 0.95, Naive's greedy door).
+    the third agent at 0.95, Naive's greedy door). (The retired "gated" rule applied only the upward term
+    before the gate opened: docs/design.md#retired-settings.)
     """
     import jax.numpy as jnp
 
@@ -179,10 +178,6 @@ def outcome_eta(eta: jax.Array, stages: jax.Array, successes: jax.Array, rate: f
     entered, failed = reached[:-1], reached[:-1] - reached[1:]
     failed_next = jnp.concatenate([failed[1:], jnp.zeros((1,), failed.dtype)])
     failed = jnp.where(gate, 0.0, failed)
-    if rule == "trusted":
-        lower = jnp.where(gate, bounds[0], sum(bounds) / 2)
-    else:
-        lower = jnp.full(eta.shape, bounds[0])
-        failed_next = jnp.where(gate, failed_next, 0.0)
+    lower = jnp.where(gate, bounds[0], sum(bounds) / 2)
     moved = eta + (rate * failed - rate * failed_next) / jnp.maximum(entered, 1.0)
     return jnp.clip(jnp.where(entered > 0, moved, eta), lower, bounds[1])

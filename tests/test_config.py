@@ -166,7 +166,7 @@ def test_a_run_with_a_retired_setting_reads_plots_and_compares_but_refuses_to_tr
     """docs/design.md#retired-settings: a removed setting at its old default reads as if absent; a retired value
     reads into Config.retired, which keeps the run apart from others and stops training and resume by name."""
     from ccp_jax import outputs, plot
-    from ccp_jax.config import Config
+    from ccp_jax.config import SECTION_OF, Config
     from ccp_jax.train import main as train_main
 
     current = make_config("tiny", etas=(("auto",),), eta_auto_rule="trusted")
@@ -183,6 +183,11 @@ def test_a_run_with_a_retired_setting_reads_plots_and_compares_but_refuses_to_tr
     assert floors.retired == (("eta_auto_floor_step", 0.25),) and floors.ccp.eta_auto_rule == "trusted"
     with pytest.raises(ConfigError, match="^eta_auto_rule: 'outcomes' is retired"):
         old.check_trainable()
+    section = SECTION_OF["eta_auto_rule"]
+    gated = Config.from_dict({**nested, section: {**nested[section], "eta_auto_rule": "gated"}})
+    assert gated.retired == (("eta_auto_rule", "gated"),) and gated.ccp.eta_auto_rule == "ranges"
+    with pytest.raises(ConfigError, match="^eta_auto_rule: 'gated' is retired"):
+        gated.check_trainable()
 
     run = tmp_path / "old_run"
     run.mkdir()

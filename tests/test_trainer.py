@@ -384,13 +384,8 @@ def test_outcome_rules_move_eta_against_hand_values():
                                       jnp.float32(successes), rate, bounds, rule, jnp.asarray(gate)))
 
     # 10 ended episodes: 6 reached stage 1, 2 stage 2, 1 succeeded. Failed in stage 0 / 1 / 2: 4 / 4 / 1.
-    # "gated": before the successor's first success only the upward term, after it only the downward one.
-    np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1, "gated", [False, True, False]),
-                               [0.5 + 0.1 * 4 / 10, 0.5 - 0.1 * 1 / 6, 0.5 + 0.1 * 1 / 2], rtol=1e-6)
-    # Peg at the CPU budget: grasps hand over, no insertion ever succeeds, so the grasping agent's ratio
-    # rises with its own failures instead of falling with the successor's.
-    np.testing.assert_allclose(move([0.5, 1.0], [5, 2], 0, "gated", [False, False]), [0.56, 0.95], rtol=1e-6)
-    # "trusted": both terms before the successor's first success, but not below the middle (0.5) then.
+    # Both terms before the successor's first success, but not below the middle (0.5) then; after it only the
+    # downward one.
     np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1, "trusted", [False, True, False]),
                                [0.5 + 0.1 * (4 - 4) / 10, 0.5 - 0.1 * 1 / 6, 0.5 + 0.1 * 1 / 2], rtol=1e-6)
     # 4 rooms: the third agent passes its room every time into a successor that never succeeded: from 0.95
@@ -398,15 +393,15 @@ def test_outcome_rules_move_eta_against_hand_values():
     np.testing.assert_allclose(move([0.95, 1.0], [5, 5], 0, "trusted", [False, False]), [0.85, 0.95], rtol=1e-6)
     np.testing.assert_allclose(move([0.52, 1.0], [5, 5], 0, "trusted", [False, False]), [0.5, 0.95], rtol=1e-6)
     np.testing.assert_allclose(move([0.1, 1.0], [5, 5], 0, "trusted", [True, False]), [0.05, 0.95], rtol=1e-6)
-    for rule in ("gated", "trusted"):
-        # Every episode hands over into a stage it then fails in (the maze's pocket), gate open: the first ratio falls.
-        np.testing.assert_allclose(move([0.5, 1.0], [5, 5], 0, rule, [True, False]), [0.4, 0.95], rtol=1e-6)
-        # The agents no episode reached keep their ratios; nothing ended: nothing moves; all succeed: nothing moves.
-        np.testing.assert_allclose(move([0.9, 0.3, 0.7], [3, 0, 0], 0, rule, [True] * 3), [0.9, 0.3, 0.7], rtol=1e-6)
-        np.testing.assert_allclose(move([0.2, 1.0], [0, 0], 0, rule, [True, False]), [0.2, 0.95], rtol=1e-6)
-        np.testing.assert_allclose(move([0.5, 0.5], [4, 4], 4, rule, [True, True]), [0.5, 0.5], rtol=1e-6)
-    with pytest.raises(ValueError, match="rule must be one of"):
-        move([0.5, 1.0], [5, 5], 0, "ranges", [False, False])
+    # Every episode hands over into a stage it then fails in (the maze's pocket), gate open: the first ratio falls.
+    np.testing.assert_allclose(move([0.5, 1.0], [5, 5], 0, "trusted", [True, False]), [0.4, 0.95], rtol=1e-6)
+    # The agents no episode reached keep their ratios; nothing ended: nothing moves; all succeed: nothing moves.
+    np.testing.assert_allclose(move([0.9, 0.3, 0.7], [3, 0, 0], 0, "trusted", [True] * 3), [0.9, 0.3, 0.7], rtol=1e-6)
+    np.testing.assert_allclose(move([0.2, 1.0], [0, 0], 0, "trusted", [True, False]), [0.2, 0.95], rtol=1e-6)
+    np.testing.assert_allclose(move([0.5, 0.5], [4, 4], 4, "trusted", [True, True]), [0.5, 0.5], rtol=1e-6)
+    for rule in ("ranges", "gated"):  # the update's rule; a retired one
+        with pytest.raises(ValueError, match="rule must be one of"):
+            move([0.5, 1.0], [5, 5], 0, rule, [False, False])
 
 
 def test_successor_succeeded_looks_two_stages_ahead():
@@ -422,12 +417,12 @@ def test_successor_succeeded_looks_two_stages_ahead():
     assert check([5, 2], 1, agents=1) == [False]  # SAC: one agent over both stages, no successor
 
 
-@pytest.mark.parametrize("rule", ["gated", "trusted"])
-def test_outcome_rule_trains_auto_members_at_its_ratios_epoch_by_epoch(rule):
-    """An "auto" member trains epoch k + 1 at `outcome_eta` of epoch k's training episodes (with "gated",
-    under the gate of every epoch's successes so far); a numeric member beside it keeps its ratio."""
+def test_outcome_rule_trains_auto_members_at_its_ratios_epoch_by_epoch():
+    """An "auto" member trains epoch k + 1 at `outcome_eta` of epoch k's training episodes (under the gate of
+    every epoch's successes so far); a numeric member beside it keeps its ratio."""
     from ccp_jax.eta import outcome_eta, successor_succeeded
 
+    rule = "trusted"
     config = make_config("tiny", rooms=2, etas=(("auto",), (0.3,)), seeds=(0,), total_steps=600,
                          eta_auto_rule=rule, eta_auto_rate=0.2)
     state, history = _train(config, make_grid_train(config, make_env(config)), 3)
@@ -449,11 +444,12 @@ def test_outcome_rule_trains_auto_members_at_its_ratios_epoch_by_epoch(rule):
 def test_outcome_rule_fields_are_validated_and_reach_the_config_from_the_cli():
     from ccp_jax.train import config_from_args, parse_args
 
-    config = config_from_args(parse_args(["--preset", "tiny", "--eta", "auto", "--eta-auto-rule", "gated",
+    config = config_from_args(parse_args(["--preset", "tiny", "--eta", "auto", "--eta-auto-rule", "trusted",
                                           "--eta-auto-rate", "0.1"]))
-    assert (config.ccp.eta_auto_rule, config.ccp.eta_auto_rate) == ("gated", 0.1)
+    assert (config.ccp.eta_auto_rule, config.ccp.eta_auto_rate) == ("trusted", 0.1)
     assert make_config("tiny").ccp.eta_auto_rule == "ranges"
-    for field, value in (("eta_auto_rule", "returns"), ("eta_auto_rule", "outcomes"), ("eta_auto_rate", 0.0),
+    for field, value in (("eta_auto_rule", "returns"), ("eta_auto_rule", "outcomes"), ("eta_auto_rule", "gated"),
+                         ("eta_auto_rate", 0.0),
                          ("eta_auto_rate", 1.5), ("eta_auto_rate", float("nan"))):
         with pytest.raises(ConfigError, match=f"^{field}:"):
             make_config("tiny", **{field: value})
