@@ -152,6 +152,17 @@ def run_grid(config: Config, out: Path, checkpoint_every: int = 10, log=print, k
     return summary
 
 
+def export_policies(folder: Path) -> None:
+    """Each member's final chain of stage policies as a `ccp_jax.export` artefact, FOLDER/policies/member<K>.jaxexport
+    (tens of kB each, committed with the results), so a grid's episodes can be looked at after its checkpoints
+    (gigabytes of replay buffers) are deleted."""
+    from ccp_jax import export, outputs
+
+    for member in range(outputs.read_config(folder).grid_size):
+        exported, meta = export.export_chain(folder, member, platforms=("cpu",))
+        export.write(exported, {**meta, "run_dir": folder.name}, folder / "policies" / f"member{member}.jaxexport")
+
+
 def swept_folder(out: Path, domain: str, etas: Optional[Sequence[float | str]] = None) -> Path:
     """Where table1.py trains a shared-ratio CSAC sweep: csac/ for the scale's ratios, csac_etas_<ratios>/ for `etas`."""
     return out / domain / ("csac" if etas is None else "csac_etas_" + "-".join(eta_label(e) for e in etas))

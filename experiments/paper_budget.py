@@ -21,16 +21,18 @@ Each cell trains as one vmapped grid into OUT/<domain>/<cell>/ (or
 A stopped process loses at most 25 epochs: run the same command again and every
 unfinished grid resumes from its latest checkpoint (finished ones are skipped).
 Checkpoints hold the 1e6-transition buffers (gigabytes) and are deleted once a
-grid finishes, when its metrics are compacted (metrics.jsonl.gz); commit the folder.
+grid finishes, after each member's final policy is exported to policies/ (tens
+of kB each) and its metrics are compacted (metrics.jsonl.gz); commit the folder.
 """
 from __future__ import annotations
 
 import dataclasses
+import shutil
 from pathlib import Path
 from typing import Optional
 
 from ccp_jax.config import make_config
-from common import RESULTS, cli, run_grid
+from common import RESULTS, cli, export_policies, run_grid
 
 SEEDS = tuple(range(30, 35))
 TOTAL_STEPS = 3_000_000
@@ -117,10 +119,20 @@ def train(args: Args) -> None:
             folder = grid_folder(args.folder, cell, seeds)
             if (folder / "metrics.jsonl.gz").exists():
                 print(f"done already: {folder}")
-                continue
-            config = make_config("small", env="maze", rooms=cell.rooms, algo=cell.algo, etas=cell.etas, seeds=seeds,
-                                 **{**SETTINGS, "total_steps": args.total_steps})
-            run_grid(config, folder, checkpoint_every=CHECKPOINT_EVERY)  # compacts metrics.jsonl once finished
+            else:
+                config = make_config("small", env="maze", rooms=cell.rooms, algo=cell.algo, etas=cell.etas,
+                                     seeds=seeds, **{**SETTINGS, "total_steps": args.total_steps})
+                run_grid(config, folder, checkpoint_every=CHECKPOINT_EVERY, keep_checkpoints=True)
+            keep_policies(folder)
+
+
+def keep_policies(folder: Path) -> None:
+    """A finished grid's final policies into FOLDER/policies/ (`common.export_policies`), then its checkpoints
+    deleted; nothing where they are gone already. Also on a grid found finished, so a process stopped between
+    the two steps loses nothing."""
+    if (folder / "summary.json").exists() and (folder / "checkpoints").is_dir():
+        export_policies(folder)
+        shutil.rmtree(folder / "checkpoints")
 
 
 def largest_grid(args: Args) -> Optional[int]:

@@ -41,7 +41,8 @@ import numpy as np
 
 from ccp_jax import outputs, stats
 from ccp_jax.config import make_config
-from common import PAPER_TABLE1, RESULTS, cli, improvement, read_json, rows_by_member, run_grid, with_interval, write_text
+from common import (PAPER_TABLE1, RESULTS, cli, export_policies, improvement, read_json, rows_by_member, run_grid,
+                    with_interval, write_text)
 
 SEEDS = (30, 31, 32)
 TOTAL_STEPS = 1_000_000
@@ -141,7 +142,6 @@ def final_evaluation(folder: Path, episodes: int = FINAL_EPISODES, probe_starts:
     checkpoints are deleted. None where the grid has not finished, or finished without checkpoints and without
     that file."""
     import peg_critic_probe
-    from ccp_jax import export
     from ccp_jax.evaluate import evaluate_run
 
     path = folder / FINAL_EVAL
@@ -153,9 +153,7 @@ def final_evaluation(folder: Path, episodes: int = FINAL_EPISODES, probe_starts:
     outputs.write_json(folder / STOCHASTIC_EVAL, evaluate_run(folder, episodes=episodes, stochastic=True, seed=1))
     if outputs.read_config(folder).num_agents == 2:
         outputs.write_json(folder / CRITIC_PROBE, peg_critic_probe.probe(folder, None, probe_starts, PROBE_SEED))
-    for member in range(len(rows)):
-        exported, meta = export.export_chain(folder, member, platforms=("cpu",))
-        export.write(exported, {**meta, "run_dir": folder.name}, folder / "policies" / f"member{member}.jaxexport")
+    export_policies(folder)
     outputs.write_json(path, rows)
     shutil.rmtree(folder / "checkpoints")
     return rows

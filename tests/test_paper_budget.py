@@ -1,4 +1,5 @@
-"""experiments/paper_budget.py's queue and folders, and its report on hand-made runs (no training)."""
+"""experiments/paper_budget.py's queue and folders, what it keeps of a finished grid (one shrunken training run),
+and its report on hand-made runs."""
 import gzip
 import json
 import sys
@@ -48,6 +49,44 @@ def test_seed_chunks_and_their_folders(tmp_path):
         paper_budget.Args(cells=("maze9/sac",)).chosen()
     with pytest.raises(SystemExit, match="seeds_per_grid"):
         paper_budget.Args(seeds_per_grid=0).chunks()
+
+
+def test_a_finished_grid_keeps_its_final_policies_and_drops_its_checkpoints(tmp_path, monkeypatch):
+    """The queue's train step on a shrunken cell (tiny networks and epochs, two seeds), stopped right after the
+    training (before the export): the checkpoints are still there; the next call finds the grid finished, writes
+    one exported chain per member to policies/ (which runs with jax alone) and only then deletes them."""
+    import jax
+
+    from ccp_jax.config import PRESETS
+
+    tiny = {k: PRESETS["tiny"][k] for k in ("hidden", "batch_size", "buffer_size", "steps_per_epoch",
+                                             "train_loops_per_epoch", "start_steps", "max_episode_steps",
+                                             "eval_episodes", "num_envs")}
+    monkeypatch.setattr(paper_budget, "SETTINGS", tiny)
+    real_run_grid = paper_budget.run_grid
+
+    def stopped_after_training(*a, **k):
+        real_run_grid(*a, **k)
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(paper_budget, "run_grid", stopped_after_training)
+    args = paper_budget.Args(cells=("maze2/sac",), seeds=(30, 31), total_steps=400, out=tmp_path)
+    folder = paper_budget.grid_folder(args.folder, paper_budget.CELLS["maze2/sac"], (30, 31))
+    assert folder == tmp_path / "budget_400" / "maze2" / "sac_seeds30to31"
+    with pytest.raises(KeyboardInterrupt):
+        paper_budget.train(args)
+    assert (folder / "checkpoints").is_dir() and (folder / "summary.json").exists()
+    assert not (folder / "policies").exists()
+
+    paper_budget.train(args)  # finds it finished: exports, then deletes
+    assert not (folder / "checkpoints").exists() and (folder / "metrics.jsonl.gz").exists()
+    assert sorted(p.name for p in (folder / "policies").iterdir()) == [
+        "member0.jaxexport", "member0.json", "member1.jaxexport", "member1.json"]
+    meta = json.loads((folder / "policies" / "member1.json").read_text())
+    assert (meta["seed"], meta["num_stages"]) == (31, 2)
+    policy = jax.export.deserialize(bytearray((folder / "policies" / "member1.jaxexport").read_bytes()))
+    action = np.asarray(policy.call(np.zeros((3, meta["obs_size"]), np.float32), np.zeros((3,), np.int32)))
+    assert action.shape == (3, meta["action_size"]) and np.all(np.abs(action) <= 1.0)
 
 
 def test_report_pools_chunks_and_measures_each_seed(tmp_path):
