@@ -1,4 +1,4 @@
-"""Does a change keep what the trainer computes, bit for bit? Eight short CLI runs, then a comparison.
+"""Does a change keep what the trainer computes, bit for bit? Nine short CLI runs, then a comparison.
 
     python experiments/same_bits.py record OUT            # the runs, with the code as it is now (≈ 1-3 min)
     python experiments/same_bits.py compare REF NEW       # every metrics row and summary field equal, wall times aside
@@ -6,8 +6,8 @@
 Record once before a refactor (e.g. from a `git worktree` of the old commit, with PYTHONPATH set to it), once
 after, then compare. The runs cover CSAC with a shared ratio and `auto`, per-agent ratios on 3 rooms, the
 trusted rule, Naive, SAC, the floor normaliser with one temperature, the ema normaliser with RLkit's init and
-log π and the acting next action, and TP on the Naive run's agents. config.json is not compared (its format
-may change); metrics.jsonl(.gz) and summary.json are.
+log π and the acting next action, population-based training (copies in every epoch), and TP on the Naive
+run's agents. config.json is not compared (its format may change); metrics.jsonl(.gz) and summary.json are.
 """
 from __future__ import annotations
 
@@ -25,6 +25,7 @@ RUNS = {
     "floor_own": "--preset tiny --rooms 3 --normaliser floor --coop-scale own --eta 0.3 --total-steps 1000",
     "ema_rlkit": ("--preset tiny --rooms 2 --normaliser ema --network-init rlkit --tanh-log-prob rlkit "
                   "--next-action acting --eta 0.5 --total-steps 1000"),
+    "pbt": "--preset small --rooms 2 --eta 0.1 0.9 --seeds 2 --pbt-every 1 --total-steps 20000",
     "tp": "--preset tiny --algo tp --primitives {out}/naive --rooms 2 --seeds 1 --total-steps 1000",
 }
 WALL = {"epoch_wall_s", "wall_s"}
@@ -57,8 +58,8 @@ def compare(ref: Path, new: Path) -> bool:
     same = True
     for name in RUNS:
         a, b = ref / name, new / name
-        if not (b / "summary.json").exists():
-            print(f"{name}: missing in {new}")
+        if missing := [f for f in (ref, new) if not (f / name / "summary.json").exists()]:
+            print(f"{name}: missing in {', '.join(map(str, missing))}")
             same = False
             continue
         ra, rb = _rows(a), _rows(b)
