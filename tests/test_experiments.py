@@ -529,6 +529,26 @@ def test_auto_variants_figure_pools_each_domains_seeds_per_line_from_the_committ
         assert all(len(series) == seeds for series in groups.values()), domain
 
 
+def test_ratio_seeds_reads_table_1s_3_room_finals_back_from_the_committed_runs(tmp_path):
+    """The η filter and the 300 k cut reproduce Table I's published 3-room cells (η = 0.1: 0.00 on seeds 0-2;
+    η = 0.3: 1.00 0.93 1.00), leave out the grid's other ratios and `auto`, and a 3 M-step run is cut at 300 k."""
+    import ratio_seeds
+    from ccp_jax import outputs
+
+    results = common.RESULTS
+    low, _ = ratio_seeds.scores(results / "table1_cpu_forward_slide/maze3/csac", 0.1)
+    high, _ = ratio_seeds.scores(results / "table1_cpu_forward_slide/maze3/csac", 0.3)
+    assert low == {0: 0.0, 1: 0.0, 2: 0.0}
+    assert [round(v, 2) for v in high.values()] == [1.0, 0.93, 1.0]
+    long_run = results / "paper_budget/maze3/csac_0.3"
+    cut, held = ratio_seeds.scores(long_run, 0.3)
+    rows = [r for r in outputs.read_rows(outputs.metrics_file(long_run)) if r["seed"] == 30]
+    window = sorted((r["env_steps"], r["success_rate"]) for r in rows if r["env_steps"] <= 300_000)[-10:]
+    assert window[-1][0] == 300_000 and cut[30] == pytest.approx(np.mean([s for _, s in window]))
+    assert 0 < held <= 1_000_000
+    assert ratio_seeds.scores(tmp_path, 0.1) is None  # not committed (yet)
+
+
 def _fake_pbt_compare_block(out: Path, args, block: int, arm: str, success: dict[int, float],
                             fitness: dict[int, float]) -> None:
     """One finished grid of pbt_compare with given final eval success and training fitness per member (2 stages:
