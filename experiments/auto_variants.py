@@ -4,8 +4,8 @@
 
 Draws runs already trained (RESULTS.md, "`auto` weighing the next critic κ times", "`auto`
 following where the episodes fail", "`auto` on peg in hole", the gated and trusted rules and, on 4 rooms,
-trusted with `--eta-auto-floor-step 0.25`; outcomes, down-only, gated and the floor step are retired rules whose runs still
-read, docs/design.md#retired-settings); each
+trusted with `--eta-auto-floor-step 0.25`; outcomes, down-only, gated and the floor step are retired rules whose
+runs still read, docs/design.md#retired-settings); each
 line is the mean ± std over the seeds of its folders (six per maze, three on peg). The maze panels
 draw success; the peg panel draws the grasp (the fraction of evaluations reaching stage 2), since no
 peg run inserts at this budget. trusted_every_seed.png draws the trusted rule against the best shared

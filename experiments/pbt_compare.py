@@ -183,7 +183,8 @@ def report(args: Args, out: Path, domain: str) -> Optional[str]:
     if autos:
         for which, values in (("best", [g["best"]["success"] for g in autos]), ("median", [g["median"] for g in autos])):
             if values:
-                lines.append(f"| auto, {args.auto_rule} ({len(values)} block{'s' * (len(values) > 1)}) | {which} | {mean_and_iqm(values)} | "
+                blocks = f"{len(values)} block{'s' * (len(values) > 1)}"
+                lines.append(f"| auto, {args.auto_rule} ({blocks}) | {which} | {mean_and_iqm(values)} | "
                              f"{' '.join(f'{v:.2f}' for v in values)} |")
     if fresh:
         values = [v for _, v in fresh]
