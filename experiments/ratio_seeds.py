@@ -21,10 +21,9 @@ from typing import Optional
 
 import numpy as np
 
-from common import RESULTS, cli, improvement, mean_and_iqm, write_text
+from common import RESULTS, cli, improvement, mean_and_iqm, rows_by_member, write_text
 
 STEPS = 300_000
-WINDOW = 10  # Table I's final success: the last 10 evaluations
 FRESH = "fresh"
 
 
@@ -64,15 +63,16 @@ def scores(folder: Path, eta: float) -> Optional[tuple[dict[int, float], int]]:
     if not (folder / "summary.json").exists():
         return None
     capacity = outputs.read_config(folder).sac.buffer_size
-    series: dict[int, list[tuple[int, float]]] = {}
+    finals: dict[int, float] = {}
     held = 0
-    for r in outputs.read_rows(outputs.metrics_file(folder)):
-        cooperative = r["eta"][:-1]  # the last agent's is 1
-        if r["env_steps"] > STEPS or any(x == "auto" or not np.isclose(x, eta) for x in cooperative):
+    for rows in rows_by_member(folder).values():
+        rows = [r for r in rows if r["env_steps"] <= STEPS]
+        cooperative = rows[0]["eta"][:-1]  # the last agent's is 1
+        if any(x == "auto" or not np.isclose(x, eta) for x in cooperative):
             continue
-        series.setdefault(r["seed"], []).append((r["env_steps"], r["success_rate"]))
-        held = max(held, int(round(max(r.get("buffer_fill", [0.0])) * capacity)))
-    return {seed: float(np.mean([s for _, s in sorted(x)[-WINDOW:]])) for seed, x in sorted(series.items())}, held
+        finals[rows[0]["seed"]] = float(np.mean([r["success_rate"] for r in rows[-outputs.FINAL_WINDOW:]]))
+        held = max(held, *(int(round(max(r.get("buffer_fill", [0.0])) * capacity)) for r in rows))
+    return dict(sorted(finals.items())), held
 
 
 def report(root: Path) -> str:
