@@ -536,17 +536,44 @@ def test_ratio_seeds_reads_table_1s_3_room_finals_back_from_the_committed_runs(t
     from ccp_jax import outputs
 
     results = common.RESULTS
-    low, _ = ratio_seeds.scores(results / "table1_cpu_forward_slide/maze3/csac", 0.1)
-    high, _ = ratio_seeds.scores(results / "table1_cpu_forward_slide/maze3/csac", 0.3)
+    low, _ = ratio_seeds.scores(results / "table1_cpu_forward_slide/maze3/csac", 0.1, 300_000)
+    high, _ = ratio_seeds.scores(results / "table1_cpu_forward_slide/maze3/csac", 0.3, 300_000)
     assert low == {0: 0.0, 1: 0.0, 2: 0.0}
     assert [round(v, 2) for v in high.values()] == [1.0, 0.93, 1.0]
     long_run = results / "paper_budget/maze3/csac_0.3"
-    cut, held = ratio_seeds.scores(long_run, 0.3)
+    cut, held = ratio_seeds.scores(long_run, 0.3, 300_000)
     rows = [r for r in outputs.read_rows(outputs.metrics_file(long_run)) if r["seed"] == 30]
     window = sorted((r["env_steps"], r["success_rate"]) for r in rows if r["env_steps"] <= 300_000)[-10:]
     assert window[-1][0] == 300_000 and cut[30] == pytest.approx(np.mean([s for _, s in window]))
     assert 0 < held <= 1_000_000
-    assert ratio_seeds.scores(tmp_path, 0.1) is None  # not committed (yet)
+    assert ratio_seeds.scores(tmp_path, 0.1, 300_000) is None  # not committed (yet)
+
+
+def test_ratio_seeds_tells_the_4_room_ramp_from_a_shared_ratio_and_reads_split_cells(tmp_path):
+    """On 4 rooms, seeds 0-11 at 400 k, the per-agent ramp solves 6 of 12 (mean 0.49) and η = 0.5 2 of 12, as
+    results.md publishes; a grid training auto, 0.5 and the ramp side by side gives each its own members; a
+    paper-budget cell split into seed chunks is read from every committed chunk."""
+    import ratio_seeds
+
+    base = common.RESULTS / "table1_cpu_forward_slide/maze4"
+    def finals(eta, names):
+        return [v for n in names for v in ratio_seeds.scores(base / n, eta, 400_000)[0].values()]
+    shared = finals(0.5, ["csac_etas_0.5-0.7", "csac_fresh_seeds", "csac_ramp_and_0.5_seeds6to8",
+                          "csac_trusted_0.5_ramp_seeds9to11"])
+    ramp = finals(ratio_seeds.RAMP, ["csac_ramp", "csac_ramp_fresh_seeds", "csac_ramp_and_0.5_seeds6to8",
+                                     "csac_trusted_0.5_ramp_seeds9to11"])
+    assert len(shared) == len(ramp) == 12
+    assert sum(v >= 0.5 for v in ramp) == 6 and round(float(np.mean(ramp)), 2) == 0.49
+    assert sum(v >= 0.5 for v in shared) == 2
+    mixed = base / "csac_trusted_0.5_ramp_seeds9to11"
+    assert set(ratio_seeds.scores(mixed, ratio_seeds.RAMP, 400_000)[0]) == {9, 10, 11}
+    for chunk in ("csac_0.1_seeds30to31", "csac_0.1_seeds32to33", "csac_0.1_seeds34to34"):
+        (tmp_path / "maze3" / chunk).mkdir(parents=True)
+    for chunk in ("csac_0.1_seeds30to31", "csac_0.1_seeds34to34"):  # 32-33 still training: not read
+        (tmp_path / "maze3" / chunk / "summary.json").write_text("{}")
+    assert [p.name for p in ratio_seeds.folders(tmp_path, "maze3/csac_0.1")] == ["csac_0.1_seeds30to31",
+                                                                                 "csac_0.1_seeds34to34"]
+    assert ratio_seeds.folders(tmp_path, "maze3/csac_0.3") == []
 
 
 def _fake_pbt_compare_block(out: Path, args, block: int, arm: str, success: dict[int, float],
