@@ -3,6 +3,7 @@
     python experiments/paper_budget.py                         # trains (or resumes) the whole queue in order, then reports
     python experiments/paper_budget.py --cells maze2/sac       # one cell of the queue (or several)
     python experiments/paper_budget.py --seeds-per-grid 3      # split each cell's 5 seeds into grids of 3 and 2
+    python experiments/paper_budget.py --cells maze3/naive --seeds 30 31   # two seeds now, the rest later
     python experiments/paper_budget.py --report-only           # table and curves from the runs as they stand
 
 Settings: the paper's epoch (5000 env steps, 1000 updates), 3 M env steps, a
