@@ -3,7 +3,7 @@
     python experiments/ratio_seeds.py        # -> experiments/results/ratio_seeds_maze3.md and ratio_seeds_maze4.md
 
 3 rooms: our η = 0.3 against the paper's 0.1. 4 rooms: our η = 0.5 and the per-agent ramp (0.1, 0.3, 0.5)
-against the paper's 0.9. Reads committed runs only, every one with [64, 64] networks, and scores each member as
+against the paper's 0.9, with η = 0.1 beside them (what the ramp's first agent uses). Reads committed runs only, every one with [64, 64] networks, and scores each member as
 Table I does at the `cpu` scale: the mean evaluation success of its last 10 epochs up to that scale's budget
 (300 k env steps on 3 rooms, 400 k on 4). Runs longer than that (the paper-budget cells) are cut there. Below
 2e5 transitions in every agent's buffer a run with a 1e6 buffer computes what one with 2e5 would (sampling reads
@@ -66,6 +66,8 @@ DOMAINS = {
         Source(0.3, "40–45, the population comparison's sweeps", _sweeps(3), FRESH, SWEEP_SEEDS),
     )),
     4: Domain(4, 400_000, (0.5, RAMP), 0.9, (
+        Source(0.1, "0–2, Table I", (f"{T1}/maze4/csac_etas_0.1-0.3",)),
+        Source(0.1, "40–45, the population comparison's sweeps", _sweeps(4), FRESH, SWEEP_SEEDS),
         Source(0.9, "0–2, Table I", (f"{T1}/maze4/csac_etas_0.9-auto",)),
         Source(0.9, "30–34, paper budget (first 400 k)", ("paper_budget/maze4/csac_0.9",), FRESH, BUDGET_SEEDS),
         Source(0.9, "40–45, the population comparison's sweeps", _sweeps(4), FRESH, SWEEP_SEEDS),
