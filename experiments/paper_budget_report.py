@@ -139,7 +139,9 @@ def markdown(rows: list[dict], improvements: list[str]) -> str:
     return (f"# Table I's maze rows at the paper's budget\n\nSeeds {SEEDS[0]}–{SEEDS[-1]} (never used to choose a "
             "setting); [64, 64] networks (the paper's are [256, 256]), buffer 1e6, the paper's epoch (5000 env steps, "
             "1000 updates). Final success: mean of the last 10 evaluations (10 deterministic episodes each). "
-            "Intervals: 95 % stratified bootstrap over seeds. A cell below 3,000,000 env steps is still training.\n\n"
+            f"Intervals: 95 % stratified bootstrap over seeds. A cell below 3,000,000 env steps is still training; "
+            f"one with fewer than {len(SEEDS)} seeds has its other seeds still to train (a cell may be trained in "
+            "chunks of seeds).\n\n"
             + head + table
             + "\n## Does success decay after its peak?\n\nPer seed: the best 10-epoch running success, and its drop "
               "to the final success.\n\n| maze | method | peak per seed | drop per seed |\n|---|---|---|---|\n" + decay
