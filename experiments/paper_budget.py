@@ -114,6 +114,13 @@ def grid_folder(out: Path, cell: Cell, seeds: tuple[int, ...]) -> Path:
     return out / cell.domain / name
 
 
+def cell_grids(out: Path, cell_name: str) -> list[Path]:
+    """The grids of one cell that exist under OUT/<domain>/ (`out` is that folder): <cell>/ and its seed chunks
+    <cell>_seeds<a>to<b>/ (`grid_folder`), finished or not, in name order."""
+    return sorted(p for p in out.glob(f"{cell_name}*")
+                  if p.name == cell_name or p.name.startswith(f"{cell_name}_seeds"))
+
+
 def train(args: Args) -> None:
     for cell in args.chosen():
         for seeds in args.chunks():

@@ -24,7 +24,7 @@ import numpy as np
 
 from ccp_jax import outputs, stats
 from common import ALGO_NAMES, PAPER_TABLE1, RESULTS, improvement, rows_by_member, with_interval, write_text
-from paper_budget import QUEUE, SEEDS, Cell
+from paper_budget import QUEUE, SEEDS, Cell, cell_grids
 
 # Epochs in the final-success mean (the paper's, as in summary.json) and in the running success.
 WINDOW = outputs.FINAL_WINDOW
@@ -69,9 +69,8 @@ class Member:
 def load_cell(out: Path, cell: Cell) -> list[Member]:
     """Every seed of `cell` found in its folder and its seed-chunk folders, complete epochs only."""
     members = {}
-    for folder in sorted((out / cell.domain).glob(f"{cell.name}*")):
-        if (folder.name != cell.name and not folder.name.startswith(f"{cell.name}_seeds")
-                or not outputs.metrics_file(folder).exists()):
+    for folder in cell_grids(out / cell.domain, cell.name):
+        if not outputs.metrics_file(folder).exists():
             continue
         for rows in rows_by_member(folder, field="out", complete_epochs=True).values():
             pockets = [r.get("eval_end", {}).get("pocket") for r in rows]

@@ -3,11 +3,12 @@
     python experiments/ratio_seeds.py        # -> experiments/results/ratio_seeds_maze3.md and ratio_seeds_maze4.md
 
 3 rooms: our η = 0.3 against the paper's 0.1. 4 rooms: our η = 0.5 and the per-agent ramp (0.1, 0.3, 0.5)
-against the paper's 0.9, with η = 0.1 beside them (what the ramp's first agent uses). Reads committed runs only, every one with [64, 64] networks, and scores each member as
-Table I does at the `cpu` scale: the mean evaluation success of its last 10 epochs up to that scale's budget
-(300 k env steps on 3 rooms, 400 k on 4). Runs longer than that (the paper-budget cells) are cut there. Below
-2e5 transitions in every agent's buffer a run with a 1e6 buffer computes what one with 2e5 would (sampling reads
-only the filled part); the report says where a buffer held more by the cut.
+against the paper's 0.9, with η = 0.1 beside them (what the ramp's first agent uses). Reads committed runs only,
+every one with [64, 64] networks, and scores each member as Table I does at the `cpu` scale: the mean evaluation
+success of its last 10 epochs up to that scale's budget (300 k env steps on 3 rooms, 400 k on 4). Runs longer
+than that (the paper-budget cells) are cut there. Below 2e5 transitions in every agent's buffer a run with a 1e6
+buffer computes what one with 2e5 would (sampling reads only the filled part); the report says where a buffer held
+more by the cut.
 
 Seed sets: 0-2 chose the ratio (Table I); on 3 rooms 0-5 trained it again at 2e5 and showed that per-seed
 outcomes do not survive a change of floating-point order; on 4 rooms 3-11 compared the ramp with η = 0.5 (a
@@ -22,12 +23,16 @@ from typing import Optional
 
 import numpy as np
 
+import paper_budget
+import pbt_compare
 from common import RESULTS, cli, improvement, mean_and_iqm, rows_by_member, write_text
 
 FRESH = "fresh"
 RAMP = (0.1, 0.3, 0.5)
-BUDGET_SEEDS = tuple(range(30, 35))  # experiments/paper_budget.py's
-SWEEP_SEEDS = tuple(range(40, 46))  # experiments/pbt_compare.py's sweeps, blocks 0-2
+BUDGET_SEEDS = paper_budget.SEEDS
+SWEEP_BLOCKS = 3  # the 3- and 4-room population comparisons' blocks
+SWEEP_SEEDS = tuple(range(pbt_compare.block_seed(pbt_compare.Args(), 0),
+                          pbt_compare.block_seed(pbt_compare.Args(), SWEEP_BLOCKS)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -50,10 +55,12 @@ class Domain:
 
 
 def _sweeps(rooms: int) -> tuple[str, ...]:
-    return tuple(f"pbt_compare_cpu/maze{rooms}/sweep_b{b}" for b in range(3))
+    out = Path("pbt_compare_cpu")
+    return tuple(str(pbt_compare.folder(out, f"maze{rooms}", b, "sweep")) for b in range(SWEEP_BLOCKS))
 
 
 T1 = "table1_cpu_forward_slide"
+BOTH_3_11 = (f"{T1}/maze4/csac_ramp_and_0.5_seeds6to8", f"{T1}/maze4/csac_trusted_0.5_ramp_seeds9to11")  # 0.5 and ramp
 DOMAINS = {
     3: Domain(3, 300_000, (0.3,), 0.1, (
         Source(0.1, "0–2, Table I (the choice)", (f"{T1}/maze3/csac",)),
@@ -72,13 +79,11 @@ DOMAINS = {
         Source(0.9, "30–34, paper budget (first 400 k)", ("paper_budget/maze4/csac_0.9",), FRESH, BUDGET_SEEDS),
         Source(0.9, "40–45, the population comparison's sweeps", _sweeps(4), FRESH, SWEEP_SEEDS),
         Source(0.5, "0–2, Table I (the choice)", (f"{T1}/maze4/csac_etas_0.5-0.7",)),
-        Source(0.5, "3–11, the ramp's comparison", (f"{T1}/maze4/csac_fresh_seeds", f"{T1}/maze4/csac_ramp_and_0.5_seeds6to8",
-                                                    f"{T1}/maze4/csac_trusted_0.5_ramp_seeds9to11")),
+        Source(0.5, "3–11, the ramp's comparison", (f"{T1}/maze4/csac_fresh_seeds", *BOTH_3_11)),
         Source(0.5, "30–34, paper budget (first 400 k)", ("paper_budget/maze4/csac_0.5",), FRESH, BUDGET_SEEDS),
         Source(0.5, "40–45, the population comparison's sweeps", _sweeps(4), FRESH, SWEEP_SEEDS),
         Source(RAMP, "0–2, after Table I", (f"{T1}/maze4/csac_ramp",)),
-        Source(RAMP, "3–11, the ramp's comparison", (f"{T1}/maze4/csac_ramp_fresh_seeds", f"{T1}/maze4/csac_ramp_and_0.5_seeds6to8",
-                                                     f"{T1}/maze4/csac_trusted_0.5_ramp_seeds9to11")),
+        Source(RAMP, "3–11, the ramp's comparison", (f"{T1}/maze4/csac_ramp_fresh_seeds", *BOTH_3_11)),
         Source(RAMP, "30–34, paper budget (first 400 k)", ("paper_budget/maze4/csac_ramp",), FRESH, BUDGET_SEEDS),
     )),
 }
@@ -100,7 +105,7 @@ def folders(root: Path, name: str) -> list[Path]:
     whole = root / name
     if (whole / "summary.json").exists():
         return [whole]
-    return sorted(p for p in whole.parent.glob(f"{whole.name}_seeds*") if (p / "summary.json").exists())
+    return [p for p in paper_budget.cell_grids(whole.parent, whole.name) if (p / "summary.json").exists()]
 
 
 def scores(folder: Path, eta: float | tuple[float, ...], steps: int) -> Optional[tuple[dict[int, float], int]]:
@@ -117,7 +122,7 @@ def scores(folder: Path, eta: float | tuple[float, ...], steps: int) -> Optional
     for rows in rows_by_member(folder).values():
         rows = [r for r in rows if r["env_steps"] <= steps]
         cooperative = rows[0]["eta"][:-1]  # the last agent's is 1
-        if any(x == "auto" for x in cooperative) or not np.allclose(cooperative, np.broadcast_to(eta, len(cooperative))):
+        if "auto" in cooperative or not np.allclose(cooperative, np.broadcast_to(eta, len(cooperative))):
             continue
         finals[rows[0]["seed"]] = float(np.mean([r["success_rate"] for r in rows[-outputs.FINAL_WINDOW:]]))
         held = max(held, *(int(round(max(r.get("buffer_fill", [0.0])) * capacity)) for r in rows))
@@ -128,7 +133,8 @@ def report(root: Path, domain: Domain) -> str:
     names = " and ".join(label(e) for e in domain.ours)
     lines = [f"### {domain.rooms} rooms, η = {names} against the paper's {label(domain.paper)}: "
              f"final success at {domain.steps:,} env steps", "",
-             "| η | seeds | per seed | solved (≥ 0.5) | mean [95 % CI] | IQM [95 % CI] | most transitions in a buffer |",
+             "| η | seeds | per seed | solved (≥ 0.5) | mean [95 % CI] | IQM [95 % CI] "
+             "| most transitions in a buffer |",
              "|---|---|---|---|---|---|---|"]
     fresh: dict[str, list[float]] = {}
     for src in domain.sources:
@@ -153,9 +159,10 @@ def report(root: Path, domain: Domain) -> str:
         if paper and fresh.get(ours):
             mine = fresh[ours]
             lines.append(f"Seeds never used for a choice: η = {ours} {mean_and_iqm(mine).replace(' | ', ', IQM ')} "
-                         f"({sum(v >= 0.5 for v in mine)} of {len(mine)} solved); the paper's η = {label(domain.paper)} "
-                         f"{mean_and_iqm(paper).replace(' | ', ', IQM ')} ({sum(v >= 0.5 for v in paper)} of "
-                         f"{len(paper)}); P(η = {ours} > η = {label(domain.paper)}) = {improvement(mine, paper)}.")
+                         f"({sum(v >= 0.5 for v in mine)} of {len(mine)} solved); "
+                         f"the paper's η = {label(domain.paper)} {mean_and_iqm(paper).replace(' | ', ', IQM ')} "
+                         f"({sum(v >= 0.5 for v in paper)} of {len(paper)}); "
+                         f"P(η = {ours} > η = {label(domain.paper)}) = {improvement(mine, paper)}.")
             lines.append("")
     return "\n".join(lines).rstrip() + "\n"
 

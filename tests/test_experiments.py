@@ -556,6 +556,7 @@ def test_ratio_seeds_tells_the_4_room_ramp_from_a_shared_ratio_and_reads_split_c
     import ratio_seeds
 
     base = common.RESULTS / "table1_cpu_forward_slide/maze4"
+
     def finals(eta, names):
         return [v for n in names for v in ratio_seeds.scores(base / n, eta, 400_000)[0].values()]
     shared = finals(0.5, ["csac_etas_0.5-0.7", "csac_fresh_seeds", "csac_ramp_and_0.5_seeds6to8",
