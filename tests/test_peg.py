@@ -116,19 +116,23 @@ def test_grasp_detection_is_a_closed_grasp(run, env):
 
 
 def test_grip_velocity_observation_means_the_same_on_both_models(run, env):
-    """The observed grip point velocity is the grip point's: it matches the recorded positions'
-    finite differences (central, over 2 control steps) along x, and y, z and the rotation stay still."""
+    """The observed grip point velocity is the grip point's: on every axis it matches the recorded positions'
+    finite differences (central, over 2 control steps); y, z and the rotation stay still but for short
+    transients. Those come at the grasp and when the peg's tip strikes the hole's rim on the way in (on an AVX2
+    CPU one of the 8 thick-section runs on the arm strikes it: one step at 0.12 m/s in z and 0.96 rad/s), and
+    whether a run strikes the rim moves with the float order, so the bounds are on how often, not on the max."""
     tr = run["np"]
     idx = list(THICK) + list(CENTRE)
     grip, obs = tr["grip"][idx], tr["obs"][idx]
-    vx_fd = (grip[:, 2:, 0] - grip[:, :-2, 0]) / (2 * env.dt)
-    vx_obs = obs[:, 1:-1, OBS_SLICES["grip_linvel"]][..., 0]
-    assert np.abs(vx_obs).max() > 0.1  # it moved at up to v_max = 0.15 m/s
-    assert np.abs(vx_fd - vx_obs).mean() < 0.01, np.abs(vx_fd - vx_obs).mean()
+    v_fd = (grip[:, 2:] - grip[:, :-2]) / (2 * env.dt)
+    v_obs = obs[:, 1:-1, OBS_SLICES["grip_linvel"]]
+    assert np.abs(v_obs[..., 0]).max() > 0.1  # it moved at up to v_max = 0.15 m/s
+    err = np.abs(v_fd - v_obs).mean(axis=(0, 1))
+    assert np.all(err < 0.01), err
     v_yz = np.abs(obs[..., OBS_SLICES["grip_linvel"]][..., 1:])
-    assert v_yz.mean() < 0.005 and v_yz.max() < 0.1  # the arm's controller holds them (transients at the grasp)
+    assert v_yz.mean() < 0.005 and (v_yz > 0.05).mean() < 0.01  # the arm's controller holds them
     w = np.abs(obs[..., OBS_SLICES["grip_angvel"]])
-    assert w.mean() < 0.02 and w.max() < 1.0
+    assert w.mean() < 0.02 and (w > 0.5).mean() < 0.01
 
 
 # ----- contract invariants ------------------------------------------------------------------------
