@@ -10,6 +10,7 @@ pyplot, so plotting is headless and leaves matplotlib's global backend alone.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 from collections import defaultdict
 from pathlib import Path
@@ -20,6 +21,7 @@ from matplotlib.axes import Axes
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter
+from PIL import Image
 
 from ccp_jax import outputs
 from ccp_jax.config import Config, ConfigError
@@ -35,6 +37,26 @@ def new_figure(width: float = 6.4, height: float = 4.0) -> Figure:
     fig = Figure(figsize=(width, height), dpi=120, layout="constrained")
     FigureCanvasAgg(fig)
     return fig
+
+
+RENDER_KEY = "Render"  # the PNG text field holding the hash of the drawn pixels
+
+
+def save_figure(fig: Figure, path: str | Path) -> bool:
+    """Save `fig` as a PNG at `path` unless the file there already holds the same pixels; True if written.
+
+    The PNG carries the SHA-256 of the drawn RGBA pixels in its text field "Render", which a lossy
+    re-compression (pngquant) keeps, so a report that re-draws unchanged results leaves committed figures as
+    they are instead of rewriting them with new bytes."""
+    fig.canvas.draw()
+    digest = hashlib.sha256(np.asarray(fig.canvas.buffer_rgba()).tobytes()).hexdigest()
+    path = Path(path)
+    if path.is_file():
+        with Image.open(path) as old:
+            if getattr(old, "text", {}).get(RENDER_KEY) == digest:
+                return False
+    fig.savefig(path, metadata={RENDER_KEY: digest})
+    return True
 
 
 def _task(config: Config) -> str:
@@ -371,8 +393,8 @@ def main(argv: Optional[Sequence[str]] = None) -> Path:
             groups = load_curves(args.run_dirs, args.metric)
     except (FileNotFoundError, KeyError, ValueError) as err:
         parser.exit(2, f"error: {err}\n")
-    curves(groups, args.metric, title=args.title).savefig(out)
-    print(f"wrote {out}")
+    written = save_figure(curves(groups, args.metric, title=args.title), out)
+    print(f"{'wrote' if written else 'unchanged:'} {out}")
     return out
 
 
@@ -384,8 +406,8 @@ def _main_lineage(parser: argparse.ArgumentParser, args: argparse.Namespace) -> 
         data = load_lineage(args.run_dirs[0])
     except (FileNotFoundError, ValueError) as err:
         parser.exit(2, f"error: {err}\n")
-    lineage(data, title=args.title).savefig(out)
-    print(f"wrote {out}")
+    written = save_figure(lineage(data, title=args.title), out)
+    print(f"{'wrote' if written else 'unchanged:'} {out}")
     return out
 
 

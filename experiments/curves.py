@@ -67,7 +67,7 @@ def draw_panels(drawn: dict[str, dict], path: Path, metrics: Optional[dict[str, 
     for i, (domain, groups) in enumerate(drawn.items()):
         plot.curves(groups, (metrics or {}).get(domain, "success_rate"),
                     ax=fig.add_subplot(1, len(drawn), i + 1), title=TITLES[domain], colors=colors)
-    fig.savefig(path)
+    plot.save_figure(fig, path)
     return path
 
 
@@ -82,10 +82,11 @@ def main(args: Args) -> list[Path]:
     written = []
     for domain, groups in drawn.items():
         path = out / f"curves{tag}_{domain}.png"
-        plot.curves(groups, title=TITLES[domain]).savefig(path)
+        plot.save_figure(plot.curves(groups, title=TITLES[domain]), path)
         stage2 = domain_groups(out, domain, args.algos, args.with_auto, STAGE2, all_etas=args.all_etas)
         stage2_path = out / f"stage2{tag}_{domain}.png"
-        plot.curves(stage2, STAGE2, title=f"{TITLES[domain]}: episodes reaching stage 2").savefig(stage2_path)
+        plot.save_figure(plot.curves(stage2, STAGE2, title=f"{TITLES[domain]}: episodes reaching stage 2"),
+                         stage2_path)
         written += [path, stage2_path]
     if drawn:
         written.append(draw_panels(drawn, out / f"curves{tag}.png"))

@@ -190,7 +190,7 @@ def figure(domain: str, found: dict[Cell, list[Member]], path: Path) -> None:
     ax.set(xlabel="env steps", ylabel=f"evaluation success, last {WINDOW} epochs", ylim=(-0.02, 1.02),
            title=f"{domain[-1]}-room maze at the paper's budget (★: the paper's Table I)")
     ax.legend(fontsize="small")
-    fig.savefig(path)
+    plot.save_figure(fig, path)
 
 
 def report(out: Path) -> str:

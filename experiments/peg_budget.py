@@ -199,7 +199,7 @@ def figure(found: dict[str, dict], path: Path) -> None:
         ax.set(xlabel="env steps", title=title, ylim=(-0.02, 1.02))
     axes[0].set_ylabel("fraction of evaluation episodes")
     axes[0].legend(fontsize="small")
-    fig.savefig(path)
+    plot.save_figure(fig, path)
 
 
 def final_table(found: dict[str, list[dict]]) -> list[str]:

@@ -207,6 +207,31 @@ def test_heatmap_and_ratio_grid(tmp_path):
         plot.heatmap(values, eta2[:1], eta1)
 
 
+def test_save_figure_keeps_a_file_with_the_same_pixels(tmp_path):
+    """A figure re-drawn from unchanged data leaves the PNG there as it is, even after a lossy re-compression
+    (PIL's palette quantisation standing in for pngquant) that keeps the text fields; new data rewrites it."""
+    from PIL import Image, PngImagePlugin
+
+    def figure(ys):
+        ax = plot.new_figure().add_subplot()
+        ax.plot(ys)
+        return ax.figure
+
+    path = tmp_path / "f.png"
+    assert plot.save_figure(figure([0, 1, 2]), path)
+    with Image.open(path) as im:
+        info = PngImagePlugin.PngInfo()
+        for k, v in im.text.items():
+            info.add_text(k, v)
+        im.convert("RGB").quantize(64).save(path, pnginfo=info)
+    quantised = path.read_bytes()
+    assert not plot.save_figure(figure([0, 1, 2]), path)
+    assert path.read_bytes() == quantised
+    assert plot.save_figure(figure([0, 1, 3]), path)
+    assert path.read_bytes() != quantised
+    _decoded_png(path)
+
+
 # ----- videos ------------------------------------------------------------------------------------
 def test_render_cli_video_frames_change(run_dir, tmp_path):
     path = render.main([str(run_dir), "--member", "1", "--episodes", "2", "--out", str(tmp_path / "m1.gif")])
