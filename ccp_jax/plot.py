@@ -43,18 +43,25 @@ RENDER_KEY = "Render"  # the PNG text field holding the hash of the drawn pixels
 
 
 def save_figure(fig: Figure, path: str | Path) -> bool:
-    """Save `fig` as a PNG at `path` unless the file there already holds the same pixels; True if written.
+    """Save `fig` at `path` (its format by its suffix) unless a PNG there already holds the same pixels; True
+    if written.
 
-    The PNG carries the SHA-256 of the drawn RGBA pixels in its text field "Render", which a lossy
+    A PNG carries the SHA-256 of the drawn RGBA pixels in its text field "Render", which a lossy
     re-compression (pngquant) keeps, so a report that re-draws unchanged results leaves committed figures as
-    they are instead of rewriting them with new bytes."""
+    they are instead of rewriting them with new bytes. Other formats are always written."""
+    path = Path(path)
+    if path.suffix.lower() != ".png":
+        fig.savefig(path)
+        return True
     fig.canvas.draw()
     digest = hashlib.sha256(np.asarray(fig.canvas.buffer_rgba()).tobytes()).hexdigest()
-    path = Path(path)
     if path.is_file():
-        with Image.open(path) as old:
-            if getattr(old, "text", {}).get(RENDER_KEY) == digest:
-                return False
+        try:
+            with Image.open(path) as old:
+                if getattr(old, "text", {}).get(RENDER_KEY) == digest:
+                    return False
+        except OSError:  # not an image we can read: replaced
+            pass
     fig.savefig(path, metadata={RENDER_KEY: digest})
     return True
 

@@ -230,6 +230,13 @@ def test_save_figure_keeps_a_file_with_the_same_pixels(tmp_path):
     assert plot.save_figure(figure([0, 1, 3]), path)
     assert path.read_bytes() != quantised
     _decoded_png(path)
+    svg = tmp_path / "f.svg"  # other formats: written as they are, every time
+    assert plot.save_figure(figure([0, 1, 2]), svg) and plot.save_figure(figure([0, 1, 2]), svg)
+    assert svg.read_text().lstrip().startswith("<?xml")
+    broken = tmp_path / "broken.png"
+    broken.write_text("not a png")
+    assert plot.save_figure(figure([0, 1, 2]), broken)
+    _decoded_png(broken)
 
 
 # ----- videos ------------------------------------------------------------------------------------
