@@ -118,9 +118,10 @@ def test_grasp_detection_is_a_closed_grasp(run, env):
 def test_grip_velocity_observation_means_the_same_on_both_models(run, env):
     """The observed grip point velocity is the grip point's: on every axis it matches the recorded positions'
     finite differences (central, over 2 control steps); y, z and the rotation stay still but for short
-    transients. Those come at the grasp and when the peg's tip strikes the hole's rim on the way in (on an AVX2
-    CPU one of the 8 thick-section runs on the arm strikes it: one step at 0.12 m/s in z and 0.96 rad/s), and
-    whether a run strikes the rim moves with the float order, so the bounds are on how often, not on the max."""
+    transients. Those come at the grasp and when the peg's tip strikes the hole's rim on the way in (on the
+    development machine's CPU and CI's, one of the 8 thick-section runs on the arm strikes it: one step at
+    0.12 m/s in z and 0.96 rad/s), and whether a run strikes the rim moves with the float order, so the bounds
+    are on how often (of the step-and-axis values), not on the max."""
     tr = run["np"]
     idx = list(THICK) + list(CENTRE)
     grip, obs = tr["grip"][idx], tr["obs"][idx]
