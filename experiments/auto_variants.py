@@ -92,8 +92,6 @@ def main() -> list[Path]:
     paths = [draw_panels({d: panel(d, panels) for d in panels}, ROOT / name,
                          {d: metric for d, (_, metric, _) in panels.items()})
              for panels, name in ((PANELS, "auto_variants.png"), (EVERY_SEED, "trusted_every_seed.png"))]
-    for path in paths:
-        print(f"wrote {path}")
     return paths
 
 

@@ -14,6 +14,8 @@ import dataclasses
 from pathlib import Path
 from typing import Optional
 
+from matplotlib.figure import Figure
+
 from ccp_jax import plot
 from ccp_jax.eta import AUTO
 from common import ScaleName, best_swept_eta, cli, merged_summary, results_folder
@@ -59,6 +61,12 @@ def domain_groups(out: Path, domain: str, algos: tuple[str, ...], with_auto: boo
     return groups
 
 
+def save(fig: Figure, path: Path) -> Path:
+    """Save `fig` at `path` and say whether the file changed (an unchanged figure is left as it is)."""
+    print(f"{'wrote' if plot.save_figure(fig, path) else 'unchanged:'} {path}")
+    return path
+
+
 def draw_panels(drawn: dict[str, dict], path: Path, metrics: Optional[dict[str, str]] = None) -> Path:
     """One panel per domain ({domain: curve groups}, in that order), side by side, saved to `path`; each
     draws its domain's metric in `metrics` (default: success)."""
@@ -67,8 +75,7 @@ def draw_panels(drawn: dict[str, dict], path: Path, metrics: Optional[dict[str, 
     for i, (domain, groups) in enumerate(drawn.items()):
         plot.curves(groups, (metrics or {}).get(domain, "success_rate"),
                     ax=fig.add_subplot(1, len(drawn), i + 1), title=TITLES[domain], colors=colors)
-    plot.save_figure(fig, path)
-    return path
+    return save(fig, path)
 
 
 def main(args: Args) -> list[Path]:
@@ -79,20 +86,17 @@ def main(args: Args) -> list[Path]:
     tag = "_all" if args.all_etas else ""  # the best-ratio figures stay as they are
     drawn = {d: g for d in args.domains if (g := domain_groups(out, d, args.algos, args.with_auto,
                                                              all_etas=args.all_etas))}
-    written = []
+    saved = []
     for domain, groups in drawn.items():
         path = out / f"curves{tag}_{domain}.png"
-        plot.save_figure(plot.curves(groups, title=TITLES[domain]), path)
+        save(plot.curves(groups, title=TITLES[domain]), path)
         stage2 = domain_groups(out, domain, args.algos, args.with_auto, STAGE2, all_etas=args.all_etas)
         stage2_path = out / f"stage2{tag}_{domain}.png"
-        plot.save_figure(plot.curves(stage2, STAGE2, title=f"{TITLES[domain]}: episodes reaching stage 2"),
-                         stage2_path)
-        written += [path, stage2_path]
+        save(plot.curves(stage2, STAGE2, title=f"{TITLES[domain]}: episodes reaching stage 2"), stage2_path)
+        saved += [path, stage2_path]
     if drawn:
-        written.append(draw_panels(drawn, out / f"curves{tag}.png"))
-    for path in written:
-        print(f"wrote {path}")
-    return written
+        saved.append(draw_panels(drawn, out / f"curves{tag}.png"))
+    return saved
 
 
 if __name__ == "__main__":

@@ -127,10 +127,10 @@ def main(args: Args) -> str:
     cells = plot.ratio_cells(folders)
     eta1, eta2, values = plot.ratio_table(cells)
     fig = plot.heatmap(values, eta1, eta2, title=f"3-room maze, final success ({args.scale} scale)")
-    plot.save_figure(fig, out / "heatmap.png")
+    written = plot.save_figure(fig, out / "heatmap.png")
     text = report(cells, shared, args.scale, out, read_json(runs[0])["members"][0]["env_steps"])
     print(text)
-    print(f"wrote {out / 'heatmap.png'}")
+    print(f"{'wrote' if written else 'unchanged:'} {out / 'heatmap.png'}")
     return text
 
 
