@@ -32,7 +32,7 @@ if TYPE_CHECKING:
 AUTO = "auto"  # a ratio estimated during training, see `EtaAutoRule`
 EtaAutoRule = Literal["ranges", "trusted"]
 ETA_AUTO_RULES = ("ranges", "trusted")
-OUTCOME_RULES = ("trusted",)  # the rules `outcome_eta` moves, once per epoch from where episodes failed
+OUTCOME_RULE = "trusted"  # the rule `outcome_eta` moves, once per epoch from where episodes failed
 Ratio = float | str  # a number in [0, 1] or AUTO
 
 
@@ -115,7 +115,7 @@ def epoch_eta(eta: jax.Array, eta_auto: jax.Array, config: Config) -> jax.Array:
     so the learner sees numbers; under "ranges" the NaNs stay for the update to resolve (`actor_eta`)."""
     import jax.numpy as jnp
 
-    if config.ccp.eta_auto_rule not in OUTCOME_RULES:
+    if config.ccp.eta_auto_rule != OUTCOME_RULE:
         return eta
     return jnp.where(jnp.isnan(eta), eta_auto, eta)
 
@@ -126,10 +126,9 @@ def next_auto(eta_auto: jax.Array, gate: jax.Array, stages: jax.Array, successes
 
     gate bool[N]: `successor_succeeded`, accumulated over every epoch so far; stages, successes as `outcome_eta`'s.
     """
-    if config.ccp.eta_auto_rule not in OUTCOME_RULES:
+    if config.ccp.eta_auto_rule != OUTCOME_RULE:
         return eta_auto
-    return outcome_eta(eta_auto, stages, successes, config.ccp.eta_auto_rate, config.ccp.eta_auto_range,
-                       config.ccp.eta_auto_rule, gate)
+    return outcome_eta(eta_auto, stages, successes, config.ccp.eta_auto_rate, config.ccp.eta_auto_range, gate)
 
 
 def _reached(stages: jax.Array, successes: jax.Array) -> jax.Array:
@@ -152,8 +151,8 @@ def successor_succeeded(stages: jax.Array, successes: jax.Array, num_agents: int
 
 
 def outcome_eta(eta: jax.Array, stages: jax.Array, successes: jax.Array, rate: float,
-                bounds: tuple[float, float], rule: EtaAutoRule, gate: jax.Array) -> jax.Array:
-    """One epoch's move of `--eta auto`'s outcome rule `rule` ("trusted"): eta float32[N] -> float32[N].
+                bounds: tuple[float, float], gate: jax.Array) -> jax.Array:
+    """One epoch's move of `--eta auto`'s outcome rule ("trusted"): eta float32[N] -> float32[N].
 
     stages float32[N]: how many of the epoch's ended training episodes reached each stage; successes
     float32[]: how many succeeded; gate bool[N]: `successor_succeeded`, accumulated over epochs. Of the
@@ -172,8 +171,6 @@ def outcome_eta(eta: jax.Array, stages: jax.Array, successes: jax.Array, rate: f
     """
     import jax.numpy as jnp
 
-    if rule not in OUTCOME_RULES:
-        raise ValueError(f"outcome_eta: rule must be one of {OUTCOME_RULES}, got {rule!r}")
     reached = _reached(stages, successes)
     entered, failed = reached[:-1], reached[:-1] - reached[1:]
     failed_next = jnp.concatenate([failed[1:], jnp.zeros((1,), failed.dtype)])

@@ -37,7 +37,7 @@ class TrainState(struct.PyTreeNode):
     key: jax.Array
     env_steps: jax.Array  # int32[]
     epoch: jax.Array  # int32[]
-    eta_auto: jax.Array  # float32[N]: the outcome rules' ratios for "auto" members (`eta.outcome_eta`)
+    eta_auto: jax.Array  # float32[N]: the outcome rule's ratios for "auto" members (`eta.outcome_eta`)
     successor_succeeded: jax.Array  # bool[N]: a training episode has succeeded in stage n + 1 ("trusted")
     pbt: PbtMember | None = None  # with `pbt_every`: the member's ratios and window (None: the grid's ratios)
 

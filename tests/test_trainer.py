@@ -376,32 +376,29 @@ def test_env_is_traced_once_per_call_kind_on_one_device():
     assert traced == {"reset": 1, "step": 1}
 
 
-def test_outcome_rules_move_eta_against_hand_values():
+def test_outcome_rule_moves_eta_against_hand_values():
     from ccp_jax.eta import outcome_eta
 
-    def move(eta, stages, successes, rule, gate, rate=0.1, bounds=(0.05, 0.95)):
+    def move(eta, stages, successes, gate, rate=0.1, bounds=(0.05, 0.95)):
         return np.asarray(outcome_eta(jnp.asarray(eta, jnp.float32), jnp.asarray(stages, jnp.float32),
-                                      jnp.float32(successes), rate, bounds, rule, jnp.asarray(gate)))
+                                      jnp.float32(successes), rate, bounds, jnp.asarray(gate)))
 
     # 10 ended episodes: 6 reached stage 1, 2 stage 2, 1 succeeded. Failed in stage 0 / 1 / 2: 4 / 4 / 1.
     # Both terms before the successor's first success, but not below the middle (0.5) then; after it only the
     # downward one.
-    np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1, "trusted", [False, True, False]),
+    np.testing.assert_allclose(move([0.5, 0.5, 0.5], [10, 6, 2], 1, [False, True, False]),
                                [0.5 + 0.1 * (4 - 4) / 10, 0.5 - 0.1 * 1 / 6, 0.5 + 0.1 * 1 / 2], rtol=1e-6)
     # 4 rooms: the third agent passes its room every time into a successor that never succeeded: from 0.95
     # back towards even weighting, held there; with the gate open the same episodes take it to the floor.
-    np.testing.assert_allclose(move([0.95, 1.0], [5, 5], 0, "trusted", [False, False]), [0.85, 0.95], rtol=1e-6)
-    np.testing.assert_allclose(move([0.52, 1.0], [5, 5], 0, "trusted", [False, False]), [0.5, 0.95], rtol=1e-6)
-    np.testing.assert_allclose(move([0.1, 1.0], [5, 5], 0, "trusted", [True, False]), [0.05, 0.95], rtol=1e-6)
+    np.testing.assert_allclose(move([0.95, 1.0], [5, 5], 0, [False, False]), [0.85, 0.95], rtol=1e-6)
+    np.testing.assert_allclose(move([0.52, 1.0], [5, 5], 0, [False, False]), [0.5, 0.95], rtol=1e-6)
+    np.testing.assert_allclose(move([0.1, 1.0], [5, 5], 0, [True, False]), [0.05, 0.95], rtol=1e-6)
     # Every episode hands over into a stage it then fails in (the maze's pocket), gate open: the first ratio falls.
-    np.testing.assert_allclose(move([0.5, 1.0], [5, 5], 0, "trusted", [True, False]), [0.4, 0.95], rtol=1e-6)
+    np.testing.assert_allclose(move([0.5, 1.0], [5, 5], 0, [True, False]), [0.4, 0.95], rtol=1e-6)
     # The agents no episode reached keep their ratios; nothing ended: nothing moves; all succeed: nothing moves.
-    np.testing.assert_allclose(move([0.9, 0.3, 0.7], [3, 0, 0], 0, "trusted", [True] * 3), [0.9, 0.3, 0.7], rtol=1e-6)
-    np.testing.assert_allclose(move([0.2, 1.0], [0, 0], 0, "trusted", [True, False]), [0.2, 0.95], rtol=1e-6)
-    np.testing.assert_allclose(move([0.5, 0.5], [4, 4], 4, "trusted", [True, True]), [0.5, 0.5], rtol=1e-6)
-    for rule in ("ranges", "gated"):  # the update's rule; a retired one
-        with pytest.raises(ValueError, match="rule must be one of"):
-            move([0.5, 1.0], [5, 5], 0, rule, [False, False])
+    np.testing.assert_allclose(move([0.9, 0.3, 0.7], [3, 0, 0], 0, [True] * 3), [0.9, 0.3, 0.7], rtol=1e-6)
+    np.testing.assert_allclose(move([0.2, 1.0], [0, 0], 0, [True, False]), [0.2, 0.95], rtol=1e-6)
+    np.testing.assert_allclose(move([0.5, 0.5], [4, 4], 4, [True, True]), [0.5, 0.5], rtol=1e-6)
 
 
 def test_successor_succeeded_looks_two_stages_ahead():
@@ -434,7 +431,7 @@ def test_outcome_rule_trains_auto_members_at_its_ratios_epoch_by_epoch():
         successes = jnp.asarray(m.train_success[0] * m.train_episodes[0])
         gate = gate | successor_succeeded(stages, successes, 2)
         expected.append(float(outcome_eta(jnp.full((2,), expected[-1]), stages, successes, 0.2,
-                                          config.ccp.eta_auto_range, rule=rule, gate=gate)[0]))
+                                          config.ccp.eta_auto_range, gate=gate)[0]))
     np.testing.assert_allclose(used[:, 0], expected[:3], rtol=1e-5)
     np.testing.assert_allclose(state.eta_auto[0, 0], expected[3], rtol=1e-5)
     np.testing.assert_array_equal(state.successor_succeeded[0], gate)
