@@ -66,6 +66,12 @@ def save_figure(fig: Figure, path: str | Path) -> bool:
     return True
 
 
+def save_figure_and_say(fig: Figure, path: str | Path) -> Path:
+    """`save_figure`, then print whether the file was written or left unchanged; returns `path`."""
+    print(f"{'wrote' if save_figure(fig, path) else 'unchanged:'} {path}")
+    return Path(path)
+
+
 def _task(config: Config) -> str:
     return f"{config.task.env}-{config.num_stages}" if config.task.env == "maze" else config.task.env
 
@@ -400,9 +406,7 @@ def main(argv: Optional[Sequence[str]] = None) -> Path:
             groups = load_curves(args.run_dirs, args.metric)
     except (FileNotFoundError, KeyError, ValueError) as err:
         parser.exit(2, f"error: {err}\n")
-    written = save_figure(curves(groups, args.metric, title=args.title), out)
-    print(f"{'wrote' if written else 'unchanged:'} {out}")
-    return out
+    return save_figure_and_say(curves(groups, args.metric, title=args.title), out)
 
 
 def _main_lineage(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Path:
@@ -413,9 +417,7 @@ def _main_lineage(parser: argparse.ArgumentParser, args: argparse.Namespace) -> 
         data = load_lineage(args.run_dirs[0])
     except (FileNotFoundError, ValueError) as err:
         parser.exit(2, f"error: {err}\n")
-    written = save_figure(lineage(data, title=args.title), out)
-    print(f"{'wrote' if written else 'unchanged:'} {out}")
-    return out
+    return save_figure_and_say(lineage(data, title=args.title), out)
 
 
 if __name__ == "__main__":

@@ -14,8 +14,6 @@ import dataclasses
 from pathlib import Path
 from typing import Optional
 
-from matplotlib.figure import Figure
-
 from ccp_jax import plot
 from ccp_jax.eta import AUTO
 from common import ScaleName, best_swept_eta, cli, merged_summary, results_folder
@@ -61,12 +59,6 @@ def domain_groups(out: Path, domain: str, algos: tuple[str, ...], with_auto: boo
     return groups
 
 
-def save(fig: Figure, path: Path) -> Path:
-    """Save `fig` at `path` and say whether the file changed (an unchanged figure is left as it is)."""
-    print(f"{'wrote' if plot.save_figure(fig, path) else 'unchanged:'} {path}")
-    return path
-
-
 def draw_panels(drawn: dict[str, dict], path: Path, metrics: Optional[dict[str, str]] = None) -> Path:
     """One panel per domain ({domain: curve groups}, in that order), side by side, saved to `path`; each
     draws its domain's metric in `metrics` (default: success)."""
@@ -75,7 +67,7 @@ def draw_panels(drawn: dict[str, dict], path: Path, metrics: Optional[dict[str, 
     for i, (domain, groups) in enumerate(drawn.items()):
         plot.curves(groups, (metrics or {}).get(domain, "success_rate"),
                     ax=fig.add_subplot(1, len(drawn), i + 1), title=TITLES[domain], colors=colors)
-    return save(fig, path)
+    return plot.save_figure_and_say(fig, path)
 
 
 def main(args: Args) -> list[Path]:
@@ -89,10 +81,11 @@ def main(args: Args) -> list[Path]:
     saved = []
     for domain, groups in drawn.items():
         path = out / f"curves{tag}_{domain}.png"
-        save(plot.curves(groups, title=TITLES[domain]), path)
+        plot.save_figure_and_say(plot.curves(groups, title=TITLES[domain]), path)
         stage2 = domain_groups(out, domain, args.algos, args.with_auto, STAGE2, all_etas=args.all_etas)
         stage2_path = out / f"stage2{tag}_{domain}.png"
-        save(plot.curves(stage2, STAGE2, title=f"{TITLES[domain]}: episodes reaching stage 2"), stage2_path)
+        plot.save_figure_and_say(plot.curves(stage2, STAGE2, title=f"{TITLES[domain]}: episodes reaching stage 2"),
+                                 stage2_path)
         saved += [path, stage2_path]
     if drawn:
         saved.append(draw_panels(drawn, out / f"curves{tag}.png"))

@@ -127,10 +127,9 @@ def main(args: Args) -> str:
     cells = plot.ratio_cells(folders)
     eta1, eta2, values = plot.ratio_table(cells)
     fig = plot.heatmap(values, eta1, eta2, title=f"3-room maze, final success ({args.scale} scale)")
-    written = plot.save_figure(fig, out / "heatmap.png")
     text = report(cells, shared, args.scale, out, read_json(runs[0])["members"][0]["env_steps"])
     print(text)
-    print(f"{'wrote' if written else 'unchanged:'} {out / 'heatmap.png'}")
+    plot.save_figure_and_say(fig, out / "heatmap.png")
     return text
 
 

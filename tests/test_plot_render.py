@@ -239,6 +239,15 @@ def test_save_figure_keeps_a_file_with_the_same_pixels(tmp_path):
     _decoded_png(broken)
 
 
+def test_save_figure_and_say_reports_written_and_unchanged(tmp_path, capsys):
+    path = tmp_path / "f.png"
+    for expected in ("wrote", "unchanged:"):
+        ax = plot.new_figure().add_subplot()
+        ax.plot([0, 1, 2])
+        assert plot.save_figure_and_say(ax.figure, str(path)) == path
+        assert capsys.readouterr().out == f"{expected} {path}\n"
+
+
 # ----- videos ------------------------------------------------------------------------------------
 def test_render_cli_video_frames_change(run_dir, tmp_path):
     path = render.main([str(run_dir), "--member", "1", "--episodes", "2", "--out", str(tmp_path / "m1.gif")])
