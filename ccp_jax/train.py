@@ -86,8 +86,7 @@ class Args:
     resume: Optional[Path] = None
     """Continue the run in this folder from its latest checkpoint; only --total-steps may change."""
     checkpoint_every: Optional[int] = None
-    """Save a checkpoint every K epochs (and always after the last); 0: only after the last. Default 10, or with
-    --resume the resumed run's."""
+    """Save a checkpoint every K epochs and after the last; 0: only after the last. Default 10 (--resume: the run's)."""
     progress: bool = True
     """Show a progress bar."""
     compile_cache: bool = True
