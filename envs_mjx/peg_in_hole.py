@@ -124,7 +124,7 @@ except Exception as _err:  # mujoco picks its GL backend at import; a broken one
 from brax.envs.base import Env, State
 from flax import struct
 
-from envs_mjx import XLA_CPU_FLAG, cpu_xla_flags, warn_if_cpu_unconfigured  # noqa: F401  (re-exported)
+from envs_mjx import warn_if_cpu_unconfigured
 from envs_mjx.frames import mujoco_frames
 from envs_mjx.peg_c import CPhysics
 from mujoco import mjx

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import os
 
-from envs_mjx import cpu_xla_flags
+from envs_mjx import XLA_CPU_FLAG, cpu_xla_flags
 
 # MJX on CPU: XLA's fusion emitters make this env ~50x slower (docs/peg.md#why-mjx-is-slow-on-a-cpu). Append the
 # switch before JAX starts, keeping anything the user set.
@@ -385,9 +385,9 @@ def test_render_frames_headless_backends(mujoco_gl):
 
 
 def test_cpu_xla_flags_appends_without_overriding():
-    assert P.cpu_xla_flags("") == P.XLA_CPU_FLAG
-    assert P.cpu_xla_flags("--foo=1") == "--foo=1 " + P.XLA_CPU_FLAG
-    assert P.cpu_xla_flags("--xla_cpu_use_fusion_emitters=true") == "--xla_cpu_use_fusion_emitters=true"
+    assert cpu_xla_flags("") == XLA_CPU_FLAG
+    assert cpu_xla_flags("--foo=1") == "--foo=1 " + XLA_CPU_FLAG
+    assert cpu_xla_flags("--xla_cpu_use_fusion_emitters=true") == "--xla_cpu_use_fusion_emitters=true"
 
 
 def test_emitter_switch_is_left_out_where_xla_dropped_it(monkeypatch):
