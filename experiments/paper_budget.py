@@ -15,7 +15,8 @@ The queue, most informative first: 2 rooms SAC and Naive (does SAC solve it by
 3 M, about 4x after CSAC; does Naive's success decay), CSAC at η = 0.1 (the
 paper's best and ours); 3 rooms CSAC at η = 0.3 (ours) and 0.1 (the paper's),
 Naive, SAC; 4 rooms CSAC at η = 0.5 (ours), 0.9 (the paper's), the per-agent
-ramp (0.1, 0.3, 0.5), Naive, SAC.
+ramp (0.1, 0.3, 0.5), Naive, SAC; then 4 rooms CSAC at η = 0.1 (none of seeds 0-2
+solved at 400 k, both of pbt_compare's fresh seeds 40-41 did).
 
 Each cell trains as one vmapped grid into OUT/<domain>/<cell>/ (or
 <cell>_seeds<a>to<b>/ per chunk of seeds), with a checkpoint every 25 epochs.
@@ -72,6 +73,9 @@ QUEUE = (
     Cell("maze4", "csac_ramp", "csac", ((0.1, 0.3, 0.5),)),
     Cell("maze4", "naive", "naive"),
     Cell("maze4", "sac", "sac"),
+    # Beyond the cells: on 4 rooms η = 0.1 solved none of seeds 0-2 at 400 k (so 0.5 was picked) but
+    # both fresh seeds 40-41 of pbt_compare's first sweep; seeds 30-34 say which holds at 3 M.
+    Cell("maze4", "csac_0.1", "csac", ((0.1,),)),
 )
 CELLS = {cell.key: cell for cell in QUEUE}
 
