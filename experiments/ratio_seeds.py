@@ -74,6 +74,7 @@ DOMAINS = {
     )),
     4: Domain(4, 400_000, (0.5, RAMP), 0.9, (
         Source(0.1, "0–2, Table I", (f"{T1}/maze4/csac_etas_0.1-0.3",)),
+        Source(0.1, "30–34, paper budget (first 400 k)", ("paper_budget/maze4/csac_0.1",), FRESH, BUDGET_SEEDS),
         Source(0.1, "40–45, the population comparison's sweeps", _sweeps(4), FRESH, SWEEP_SEEDS),
         Source(0.9, "0–2, Table I", (f"{T1}/maze4/csac_etas_0.9-auto",)),
         Source(0.9, "30–34, paper budget (first 400 k)", ("paper_budget/maze4/csac_0.9",), FRESH, BUDGET_SEEDS),
